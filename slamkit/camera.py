@@ -1,0 +1,111 @@
+"""Camera intrinsics: pinhole + OpenCV distortion (k1, k2, p1, p2, k3).
+
+slamkit works in *undistorted* pixel coordinates: keypoints are undistorted once, after extraction, and the
+map uses an ideal pinhole camera with the same (fx, fy, cx, cy). This keeps every pycolmap estimator on the
+PINHOLE model and makes distortion a property of the source only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from .errors import CalibrationError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics with OpenCV radial-tangential distortion.
+
+    All values in pixels for an image of ``width`` x ``height``; ``dist`` is (k1, k2, p1, p2, k3).
+    """
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def __post_init__(self) -> None:
+        values = dict(fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy)
+        for name, v in values.items():
+            if not math.isfinite(float(v)):
+                raise CalibrationError(f"intrinsics: {name}={v} is not a finite number")
+        for i, v in enumerate(self.dist):
+            if not math.isfinite(float(v)):
+                raise CalibrationError(f"intrinsics: distortion coefficient {i} ({v}) is not a finite number")
+        if len(self.dist) != 5:
+            raise CalibrationError(f"intrinsics: dist needs 5 values (k1 k2 p1 p2 k3), got {len(self.dist)}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise CalibrationError(f"intrinsics: image size {self.width}x{self.height} must be positive")
+        if self.fx <= 0 or self.fy <= 0:
+            raise CalibrationError(f"intrinsics: focal lengths must be positive (fx={self.fx}, fy={self.fy})")
+        if not (0 < self.cx < self.width and 0 < self.cy < self.height):
+            raise CalibrationError(
+                f"intrinsics: principal point ({self.cx}, {self.cy}) lies outside the "
+                f"{self.width}x{self.height} image"
+            )
+
+    @classmethod
+    def from_focal(cls, width: int, height: int, focal: float | None = None) -> "Intrinsics":
+        """Pinhole camera with the principal point at the centre; ``focal`` defaults to 1.2 x width
+        (a ~45 degree horizontal field of view, COLMAP's default prior)."""
+        f = 1.2 * max(width, height) if focal is None else float(focal)
+        return cls(int(width), int(height), f, f, width / 2.0, height / 2.0)
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) float64 calibration matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(abs(d) > 0 for d in self.dist)
+
+    @property
+    def pinhole(self) -> "Intrinsics":
+        """The same camera without distortion (the camera of undistorted keypoints)."""
+        return replace(self, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def check_image(self, shape: tuple[int, ...], where: str = "image") -> None:
+        """Raise :class:`CalibrationError` when an image of ``shape`` (H, W[, C]) does not fit."""
+        h, w = int(shape[0]), int(shape[1])
+        if (w, h) != (self.width, self.height):
+            raise CalibrationError(
+                f"{where}: image is {w}x{h} but the intrinsics are for {self.width}x{self.height}"
+            )
+
+    def undistort_points(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) distorted pixels -> (N, 2) float64 pixels of the ideal pinhole camera."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if not self.has_distortion or len(xy) == 0:
+            return xy.copy()
+        import cv2
+
+        out = cv2.undistortPoints(xy.reshape(-1, 1, 2), self.K, np.asarray(self.dist), P=self.K)
+        return out.reshape(-1, 2).astype(np.float64)
+
+    def scaled(self, factor: float) -> "Intrinsics":
+        """Intrinsics of the image resized by ``factor`` (pixel-centre convention)."""
+        return Intrinsics(
+            width=int(round(self.width * factor)),
+            height=int(round(self.height * factor)),
+            fx=self.fx * factor,
+            fy=self.fy * factor,
+            cx=(self.cx + 0.5) * factor - 0.5,
+            cy=(self.cy + 0.5) * factor - 0.5,
+            dist=self.dist,
+        )
+
+    def to_dict(self) -> dict:
+        return dict(width=self.width, height=self.height, fx=self.fx, fy=self.fy, cx=self.cx, cy=self.cy,
+                    dist=list(self.dist))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Intrinsics":
+        return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
+                   float(d["cy"]), tuple(float(x) for x in d.get("dist", (0, 0, 0, 0, 0))))

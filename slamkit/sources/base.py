@@ -1,0 +1,140 @@
+"""The frame-source interface and the shared image-list implementation.
+
+A source is a random-access, lazily-read sequence of :class:`~slamkit.types.Frame`. Frame skip and max
+frames are applied when the source is opened, so ``len(source)`` is the number of frames SLAM will see.
+Images are decoded on access only: memory does not grow with the length of the sequence.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..errors import ConfigError, ImageReadError
+from ..types import Frame, Trajectory
+
+
+def check_skip_and_max(frame_skip: int, max_frames: int | None) -> None:
+    if int(frame_skip) < 1:
+        raise ConfigError(f"frame_skip must be >= 1 (got {frame_skip})")
+    if max_frames is not None and int(max_frames) < 1:
+        raise ConfigError(f"max_frames must be >= 1 or None (got {max_frames})")
+
+
+def select(n: int, frame_skip: int = 1, max_frames: int | None = None, start: int = 0) -> np.ndarray:
+    """Indices kept from ``n`` items: every ``frame_skip``-th from ``start``, at most ``max_frames``."""
+    check_skip_and_max(frame_skip, max_frames)
+    idx = np.arange(int(start), n, int(frame_skip))
+    return idx[:max_frames] if max_frames is not None else idx
+
+
+class FrameSource:
+    """Abstract frame source. Subclasses implement ``__len__``, ``_read(i)`` and set ``camera``/``name``.
+
+    Attributes:
+        name: short human-readable name (dataset and sequence).
+        camera: intrinsics of every frame (of the images as delivered, distortion included).
+        timestamps: (N,) float64 seconds of the delivered frames.
+        frame_ids: (N,) int64 dataset frame numbers of the delivered frames.
+        gt_poses: (N, 4, 4) camera-to-world ground truth or None; rows are NaN where a frame has none.
+    """
+
+    name: str = "source"
+    camera: Intrinsics
+    timestamps: np.ndarray
+    frame_ids: np.ndarray
+    gt_poses: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
+        """Decode delivered frame ``i``: returns (image uint8 HxW or HxWx3 BGR, path or None)."""
+        raise NotImplementedError
+
+    def __getitem__(self, i: int) -> Frame:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"frame {i} out of range for {self.name} with {n} frames")
+        i = i % n
+        image, path = self._read(i)
+        gray, color = to_gray_and_rgb(image)
+        self.camera.check_image(gray.shape, where=str(path) if path is not None else f"{self.name} frame {i}")
+        gt = None
+        if self.gt_poses is not None and np.isfinite(self.gt_poses[i]).all():
+            gt = self.gt_poses[i].copy()
+        return Frame(index=i, frame_id=int(self.frame_ids[i]), timestamp=float(self.timestamps[i]),
+                     gray=gray, color=color, camera=self.camera, gt_pose=gt, path=path)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def ground_truth(self) -> Trajectory | None:
+        """Ground truth of the delivered frames that have one (camera-to-world, source timestamps)."""
+        if self.gt_poses is None:
+            return None
+        ok = np.isfinite(self.gt_poses).all(axis=(1, 2))
+        return Trajectory(self.timestamps[ok], self.gt_poses[ok])
+
+    def __repr__(self) -> str:
+        c = self.camera
+        return (f"{type(self).__name__}({self.name!r}, {len(self)} frames, {c.width}x{c.height}, "
+                f"gt={'yes' if self.gt_poses is not None else 'no'})")
+
+
+def to_gray_and_rgb(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """uint8 grey (H, W) or BGR(A) (H, W, 3|4) -> (grey (H, W), RGB (H, W, 3)); 16-bit is scaled to 8-bit."""
+    import cv2
+
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    if image.ndim == 2:
+        return image, cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    if image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def read_image(path: Path) -> np.ndarray:
+    """Decode an image file with OpenCV; :class:`ImageReadError` names the file when it fails."""
+    import cv2
+
+    if not path.is_file():
+        raise ImageReadError(path, "file does not exist")
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:  # pragma: no cover - OpenCV raises only for exotic files
+        raise ImageReadError(path, f"could not be decoded ({e})") from None
+    if image is None or image.size == 0:
+        raise ImageReadError(path)
+    return image
+
+
+@dataclass
+class ImageListSource(FrameSource):
+    """Frames read from a list of image files (the common case of every dataset layout)."""
+
+    name: str
+    camera: Intrinsics
+    paths: Sequence[Path]
+    timestamps: np.ndarray
+    frame_ids: np.ndarray
+    gt_poses: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.paths = [Path(p) for p in self.paths]
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64)
+        self.frame_ids = np.asarray(self.frame_ids, dtype=np.int64)
+        if self.gt_poses is not None:
+            self.gt_poses = np.asarray(self.gt_poses, dtype=np.float64).reshape(-1, 4, 4)
+        assert len(self.paths) == len(self.timestamps) == len(self.frame_ids)
+
+    def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
+        return read_image(self.paths[i]), self.paths[i]
+
+    __repr__ = FrameSource.__repr__
