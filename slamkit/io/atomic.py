@@ -1,0 +1,159 @@
+"""Atomic file and folder writes: readers never see a half-written output.
+
+A file is written to a temporary sibling in the same folder (same file system), flushed and fsynced, then
+moved over the target with ``os.replace``, which is atomic on POSIX and Windows. If anything fails before the
+rename, the temporary file is removed and the old file (if any) is left untouched. The new file gets the
+permissions of the file it replaces, or ``0o666 & ~umask`` when it is new (``mkstemp`` would give ``0o600``).
+
+A folder is written the same way with :func:`atomic_dir`: the caller fills a temporary sibling folder, which
+then takes the place of the old one. Replacing a non-empty folder takes two renames (old -> backup, new ->
+target), so there is an instant in which the target does not exist, but never one in which it is partial.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import stat
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from ..errors import OutputError
+
+__all__ = ["atomic_write_text", "atomic_write_bytes", "atomic_dir"]
+
+
+def _prepare_parent(path: Path) -> Path:
+    """Create the parent folder of ``path`` if needed; OutputError naming it when that is impossible."""
+    parent = path.parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{parent}: output folder cannot be created ({e.strerror or e})") from e
+    if not parent.is_dir():
+        raise OutputError(f"{parent}: output folder is not a folder")
+    return parent
+
+
+def _new_file_mode(path: Path) -> int:
+    try:
+        return stat.S_IMODE(path.stat().st_mode)
+    except OSError:
+        mask = os.umask(0)
+        os.umask(mask)
+        return 0o666 & ~mask
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable; best effort (not every platform can open a folder)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _atomic_write(path: str | os.PathLike, chunks: Iterable[bytes]) -> Path:
+    path = Path(path)
+    parent = _prepare_parent(path)
+    if path.is_dir():
+        raise OutputError(f"{path}: is a folder, cannot be replaced by a file")
+    mode = _new_file_mode(path)
+    try:
+        fd, tmp_name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as e:
+        raise OutputError(f"{parent}: output folder is not writable ({e.strerror or e})") from e
+    tmp = Path(tmp_name)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            for chunk in chunks:
+                f.write(chunk)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException as e:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        if isinstance(e, OSError):
+            raise OutputError(f"{path}: cannot be written ({e.strerror or e})") from e
+        raise
+    _fsync_dir(parent)
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes | Iterable[bytes]) -> Path:
+    """Write ``data`` (bytes, or an iterable of byte chunks) to ``path`` atomically; returns the path.
+
+    Missing parent folders are created. An error while producing the chunks leaves the old file intact.
+    Raises OutputError naming the folder or file when it cannot be written.
+    """
+    chunks = [data] if isinstance(data, (bytes, bytearray, memoryview)) else data
+    return _atomic_write(path, (bytes(c) for c in chunks))
+
+
+def atomic_write_text(path: str | os.PathLike, text: str | Iterable[str], encoding: str = "utf-8") -> Path:
+    """Write ``text`` (a string, or an iterable of string chunks such as lines) to ``path`` atomically.
+
+    Chunks are encoded and written as they come, so a generator that raises half-way leaves only a
+    temporary file, which is removed: the old ``path`` stays as it was. Newlines are written as given.
+    """
+    chunks = [text] if isinstance(text, str) else text
+    return _atomic_write(path, (c.encode(encoding) for c in chunks))
+
+
+@contextlib.contextmanager
+def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
+    """Context manager: fill a temporary sibling folder, which replaces ``path`` when the block succeeds.
+
+    ``with atomic_dir("out/run1") as d: (d / "a.txt").write_text(...)`` — inside the block ``d`` is the
+    temporary folder (``out/.run1.XXXX.tmp``). On a clean exit it is renamed to ``out/run1``; an old
+    ``out/run1`` is moved aside first and deleted afterwards. If the block raises, the temporary folder is
+    deleted and the old folder is untouched. OutputError when the parent is not writable or ``path`` is a file.
+    """
+    path = Path(path)
+    parent = _prepare_parent(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{path}: exists and is not a folder, will not replace it with one")
+    try:
+        tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp"))
+    except OSError as e:
+        raise OutputError(f"{parent}: output folder is not writable ({e.strerror or e})") from e
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    # mkdtemp creates 0o700; give the result the usual folder permissions
+    mask = os.umask(0)
+    os.umask(mask)
+    backup: Path | None = None
+    try:
+        os.chmod(tmp, 0o777 & ~mask)
+        if path.exists():
+            backup = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".old"))
+            os.replace(path, backup / path.name)
+        os.replace(tmp, path)
+    except OSError as e:
+        shutil.rmtree(tmp, ignore_errors=True)
+        note = ""
+        if backup is not None:
+            moved = backup / path.name
+            if moved.exists() and not path.exists():
+                try:
+                    os.replace(moved, path)
+                except OSError:
+                    note = f"; the old folder is kept at {moved}"
+            if not note:
+                shutil.rmtree(backup, ignore_errors=True)
+        raise OutputError(f"{path}: folder cannot be replaced ({e.strerror or e}){note}") from e
+    if backup is not None:
+        shutil.rmtree(backup, ignore_errors=True)
+    _fsync_dir(parent)
