@@ -1,0 +1,334 @@
+"""Trajectory error metrics: absolute trajectory error (ATE) and relative pose error (RPE).
+
+Conventions are evo's (``evo_ape`` / ``evo_rpe``, evo 1.38), so the numbers agree with
+``evo_ape tum GT EST -as --t_max_diff DT`` and ``evo_rpe tum GT EST -as --t_max_diff DT``:
+
+1. associate estimate and ground-truth timestamps (:func:`~slamkit.eval.associate.associate`);
+2. fit the alignment on the matched camera centres only and apply it to the matched estimate poses
+   (:func:`~slamkit.eval.align.estimate_alignment`);
+3. ATE (evo's APE w.r.t. the translation part): per matched frame ``|p_est,aligned - p_gt|`` in metres;
+4. RPE on the aligned matched poses, for pairs ``(i, j)`` of matched frames chosen on the estimate: with
+   ``Q`` ground truth and ``P`` estimate, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the translation error is
+   ``|t(E)|`` (metres), the rotation error the angle of ``R(E)`` (degrees). Pairs for ``unit="frames"``
+   are ``(0, d), (d, 2d), ...`` (evo's consecutive pairs), with ``all_pairs=True`` every ``(i, i + d)``;
+   for ``unit="m"`` a pair closes each time the estimate's path length since its start reaches ``delta``
+   metres (evo's ``--delta_unit m``).
+
+Statistics are evo's: rmse, mean, median, std (population), min, max, sse.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import AssociationError, ConfigError
+from ..geometry import invert_pose
+from ..types import Trajectory
+from .align import Alignment, estimate_alignment
+from .associate import associate
+
+__all__ = ["ErrorStats", "AteResult", "RpeResult", "ate", "rpe", "evaluate", "MIN_MATCHED"]
+
+#: fewer matched poses than this raise AssociationError (Umeyama needs 3)
+MIN_MATCHED = 3
+#: evo's default relative tolerance of ``delta`` for all-pairs RPE in metres
+RPE_REL_DELTA_TOL = 0.1
+_UNITS = {"frames": "frames", "f": "frames", "m": "m", "meters": "m", "metres": "m"}
+
+
+@dataclass(frozen=True)
+class ErrorStats:
+    """Summary of an error array (units of the errors), as evo's ``get_all_statistics``."""
+
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    min: float
+    max: float
+    sse: float
+    count: int
+
+    @classmethod
+    def from_errors(cls, errors: np.ndarray) -> "ErrorStats":
+        e = np.asarray(errors, dtype=np.float64).reshape(-1)
+        if len(e) == 0:
+            nan = float("nan")
+            return cls(nan, nan, nan, nan, nan, nan, 0.0, 0)
+        sq = e**2
+        return cls(rmse=float(np.sqrt(np.mean(sq))), mean=float(np.mean(e)), median=float(np.median(e)),
+                   std=float(np.std(e)), min=float(np.min(e)), max=float(np.max(e)), sse=float(np.sum(sq)),
+                   count=len(e))
+
+    def to_dict(self) -> dict:
+        return {k: getattr(self, k) for k in ("rmse", "mean", "median", "std", "min", "max", "sse", "count")}
+
+
+@dataclass(frozen=True, eq=False)
+class AteResult:
+    """Absolute trajectory error after alignment.
+
+    ``errors`` (K,) metres per matched frame, at ``timestamps`` (K,) (the estimate's) and
+    ``gt_timestamps`` (K,); ``idx_gt``/``idx_est`` (K,) the matched indices into the inputs.
+    ``est_matched_fraction`` = K / estimate poses; ``gt_matched_fraction`` = distinct ground-truth poses
+    matched / ground-truth poses (low by design when the ground truth is denser, e.g. TUM's 100 Hz
+    motion capture against 30 Hz images); ``gt_time_coverage`` = time spanned by the matched frames /
+    time spanned by the ground truth (``gt_span``, first and last ground-truth timestamp).
+    """
+
+    stats: ErrorStats
+    errors: np.ndarray
+    timestamps: np.ndarray
+    gt_timestamps: np.ndarray
+    idx_gt: np.ndarray
+    idx_est: np.ndarray
+    n_est: int
+    n_gt: int
+    alignment: Alignment
+    max_dt: float
+    offset: float
+    gt_span: tuple[float, float]
+
+    rmse = property(lambda self: self.stats.rmse, doc="metres")
+    mean = property(lambda self: self.stats.mean, doc="metres")
+    median = property(lambda self: self.stats.median, doc="metres")
+    std = property(lambda self: self.stats.std, doc="metres")
+    min = property(lambda self: self.stats.min, doc="metres")
+    max = property(lambda self: self.stats.max, doc="metres")
+
+    @property
+    def n_matched(self) -> int:
+        return len(self.idx_est)
+
+    @property
+    def est_matched_fraction(self) -> float:
+        return self.n_matched / self.n_est if self.n_est else 0.0
+
+    @property
+    def gt_matched_fraction(self) -> float:
+        return len(np.unique(self.idx_gt)) / self.n_gt if self.n_gt else 0.0
+
+    @property
+    def gt_time_coverage(self) -> float:
+        return _time_coverage(self.gt_timestamps, self.gt_span)
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable summary (no per-frame arrays)."""
+        return {**self.stats.to_dict(), "matched": self.n_matched, "estimate_poses": self.n_est,
+                "ground_truth_poses": self.n_gt, "estimate_matched_fraction": self.est_matched_fraction,
+                "ground_truth_matched_fraction": self.gt_matched_fraction,
+                "ground_truth_time_coverage": self.gt_time_coverage, "alignment": self.alignment.to_dict(),
+                "max_dt": self.max_dt, "offset": self.offset}
+
+
+@dataclass(frozen=True, eq=False)
+class RpeResult:
+    """Relative pose error over pairs of matched frames.
+
+    ``translation`` stats in metres, ``rotation`` stats in degrees; per pair ``translation_errors`` (P,),
+    ``rotation_errors_deg`` (P,), ``pairs`` (P, 2) indices into the matched frames, ``timestamps`` (P,) the
+    estimate's timestamp of each pair's second frame (as evo's result).
+    """
+
+    translation: ErrorStats
+    rotation: ErrorStats
+    translation_errors: np.ndarray
+    rotation_errors_deg: np.ndarray
+    pairs: np.ndarray
+    timestamps: np.ndarray
+    delta: float
+    unit: str
+    all_pairs: bool
+    n_matched: int
+    alignment: Alignment
+
+    @property
+    def n_pairs(self) -> int:
+        return len(self.pairs)
+
+    def to_dict(self) -> dict:
+        return {"delta": self.delta, "unit": self.unit, "all_pairs": self.all_pairs, "pairs": self.n_pairs,
+                "translation": self.translation.to_dict(), "rotation_deg": self.rotation.to_dict()}
+
+
+# ------------------------------------------------------------------------------------------- internals
+
+@dataclass(frozen=True, eq=False)
+class _Matched:
+    gt: Trajectory            # matched ground-truth poses
+    est: Trajectory           # matched estimate poses, aligned
+    idx_gt: np.ndarray
+    idx_est: np.ndarray
+    alignment: Alignment
+    n_gt: int
+    n_est: int
+    gt_span: tuple[float, float]
+    max_dt: float
+    offset: float
+
+
+def _span(t: np.ndarray) -> str:
+    return f"[{t[0]:.6f}, {t[-1]:.6f}] s" if len(t) else "(no poses)"
+
+
+def _time_coverage(t: np.ndarray, span: tuple[float, float]) -> float:
+    if len(t) == 0:
+        return 0.0
+    total = span[1] - span[0]
+    return float(min(1.0, (t[-1] - t[0]) / total)) if total > 0 else 1.0
+
+
+def _match_and_align(gt: Trajectory, est: Trajectory, align: str, max_dt: float, offset: float) -> _Matched:
+    if not max_dt >= 0:
+        raise ConfigError(f"max_dt: must be >= 0 seconds, got {max_dt}")
+    idx_gt, idx_est = associate(gt.timestamps, est.timestamps, max_dt, offset)
+    if len(idx_est) < MIN_MATCHED:
+        raise AssociationError(
+            f"only {len(idx_est)} estimate poses matched ground truth within max_dt={max_dt} s "
+            f"(offset {offset} s), need at least {MIN_MATCHED}: estimate has {len(est)} poses over "
+            f"{_span(est.timestamps)}, ground truth {len(gt)} poses over {_span(gt.timestamps)}")
+    gt_m, est_m = gt.subset(idx_gt), est.subset(idx_est)
+    alignment = estimate_alignment(est_m.positions, gt_m.positions, align)
+    span = (float(gt.timestamps[0]), float(gt.timestamps[-1]))
+    return _Matched(gt_m, alignment.apply(est_m), idx_gt, idx_est, alignment, len(gt), len(est), span,
+                    float(max_dt), float(offset))
+
+
+def _ate(m: _Matched) -> AteResult:
+    errors = np.linalg.norm(m.est.positions - m.gt.positions, axis=1)
+    return AteResult(ErrorStats.from_errors(errors), errors, m.est.timestamps.copy(), m.gt.timestamps.copy(),
+                     m.idx_gt, m.idx_est, m.n_est, m.n_gt, m.alignment, m.max_dt, m.offset, m.gt_span)
+
+
+def _pairs_by_frames(n: int, delta: int, all_pairs: bool) -> np.ndarray:
+    if all_pairs:
+        i = np.arange(max(n - delta, 0))
+        return np.stack([i, i + delta], axis=1)
+    ids = np.arange(0, n, delta)
+    return np.stack([ids[:-1], ids[1:]], axis=1)
+
+
+def _pairs_by_path(positions: np.ndarray, delta: float, all_pairs: bool) -> np.ndarray:
+    """evo's ``filter_pairs_by_path`` (path length along the aligned estimate)."""
+    steps = np.linalg.norm(positions[1:] - positions[:-1], axis=1)
+    pairs = []
+    if all_pairs:
+        tol = delta * RPE_REL_DELTA_TOL
+        distances = np.concatenate([[0.0], np.cumsum(steps)])
+        for i in range(len(distances) - 1):
+            from_here = distances[i + 1:] - distances[i]
+            k = int(np.argmin(np.abs(from_here - delta)))
+            if np.abs(from_here[k] - delta) <= tol:
+                pairs.append((i, k + i + 1))
+    else:
+        start, path = 0, 0.0
+        for i, step in enumerate(steps, start=1):
+            path += float(step)
+            if path >= delta:
+                pairs.append((start, i))
+                start, path = i, 0.0
+    return np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+
+
+def _rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations -> angle in degrees, accurate for small and large angles."""
+    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    return np.degrees(np.arctan2(np.linalg.norm(axis, axis=-1), trace - 1.0))
+
+
+def _rpe(m: _Matched, delta: float, unit: str, all_pairs: bool) -> RpeResult:
+    unit_name = _UNITS.get(unit)
+    if unit_name is None:
+        raise ConfigError(f"unit: {unit!r} is not 'frames' or 'm'")
+    n = len(m.est)
+    if unit_name == "frames":
+        if not (float(delta).is_integer() and delta >= 1):
+            raise ConfigError(f"delta: must be a whole number of frames >= 1, got {delta}")
+        delta = int(delta)
+        pairs = _pairs_by_frames(n, delta, all_pairs)
+    else:
+        if not delta > 0:
+            raise ConfigError(f"delta: must be > 0 metres, got {delta}")
+        delta = float(delta)
+        pairs = _pairs_by_path(m.est.positions, delta, all_pairs)
+    if len(pairs) == 0:
+        raise ConfigError(f"delta: {delta} {unit_name} gives no pose pairs among {n} matched poses; "
+                          "use a smaller delta")
+    i, j = pairs[:, 0], pairs[:, 1]
+    Q, P = m.gt.poses, m.est.poses
+    Q_rel = invert_pose(Q[i]) @ Q[j]
+    P_rel = invert_pose(P[i]) @ P[j]
+    E = invert_pose(Q_rel) @ P_rel
+    t_err = np.linalg.norm(E[:, :3, 3], axis=1)
+    r_err = _rotation_angle_deg(E[:, :3, :3])
+    return RpeResult(ErrorStats.from_errors(t_err), ErrorStats.from_errors(r_err), t_err, r_err, pairs,
+                     m.est.timestamps[j].copy(), delta, unit_name, all_pairs, n, m.alignment)
+
+
+# ------------------------------------------------------------------------------------------- public API
+
+def ate(gt: Trajectory, est: Trajectory, align: str = "sim3", max_dt: float = 0.02,
+        offset: float = 0.0) -> AteResult:
+    """Absolute trajectory error of ``est`` against ``gt`` (metres), after ``align``.
+
+    ``align``: "sim3" (default, monocular), "se3", "scale" or "none". ``max_dt``: largest timestamp
+    difference (seconds) of a matched pair; ``offset`` seconds added to the estimate's timestamps.
+    AssociationError when fewer than 3 poses match (the message gives both time ranges).
+    Equal to ``evo_ape tum GT EST -as --t_max_diff MAX_DT`` for ``align="sim3"``.
+    """
+    return _ate(_match_and_align(gt, est, align, max_dt, offset))
+
+
+def rpe(gt: Trajectory, est: Trajectory, delta: float = 1, unit: str = "frames", align: str = "sim3",
+        max_dt: float = 0.02, offset: float = 0.0, all_pairs: bool = False) -> RpeResult:
+    """Relative pose error of ``est`` against ``gt``: translation (metres) and rotation (degrees).
+
+    ``delta`` frames (``unit="frames"``) or metres of the aligned estimate's path (``unit="m"``);
+    ``all_pairs`` uses every pair ``(i, i + delta)`` instead of consecutive pairs (evo's ``--all_pairs``).
+    Equal to ``evo_rpe tum GT EST -as --t_max_diff MAX_DT --delta DELTA --delta_unit f|m`` (translation;
+    rotation with ``--pose_relation angle_deg``).
+    """
+    return _rpe(_match_and_align(gt, est, align, max_dt, offset), delta, unit, all_pairs)
+
+
+def _load(x: Trajectory | str | os.PathLike) -> tuple[Trajectory, str | None]:
+    if isinstance(x, Trajectory):
+        return x, None
+    from ..io.trajectory import read_trajectory
+
+    return read_trajectory(x), str(Path(x))
+
+
+def evaluate(est: Trajectory | str | os.PathLike, gt: Trajectory | str | os.PathLike, *, align: str = "sim3",
+             max_dt: float = 0.02, offset: float = 0.0, rpe_delta: float = 1, rpe_unit: str = "frames") -> dict:
+    """One-call evaluation for the CLI and notebooks: ATE, RPE and counts as a JSON-serialisable dict.
+
+    ``est`` and ``gt`` are Trajectories or paths of TUM/KITTI files (see ``read_trajectory``). Keys:
+    ``ate`` (stats in metres), ``rpe`` (``translation`` metres, ``rotation_deg``), ``matched``,
+    ``estimate_poses``, ``ground_truth_poses``, the matched fractions, ``alignment`` and the settings.
+    """
+    est_traj, est_path = _load(est)
+    gt_traj, gt_path = _load(gt)
+    m = _match_and_align(gt_traj, est_traj, align, max_dt, offset)
+    a = _ate(m)
+    r = _rpe(m, rpe_delta, rpe_unit, False)
+    return {
+        "estimate": est_path,
+        "ground_truth": gt_path,
+        "ate": a.stats.to_dict(),
+        "rpe": r.to_dict(),
+        "matched": a.n_matched,
+        "estimate_poses": a.n_est,
+        "ground_truth_poses": a.n_gt,
+        "estimate_matched_fraction": a.est_matched_fraction,
+        "ground_truth_matched_fraction": a.gt_matched_fraction,
+        "ground_truth_time_coverage": a.gt_time_coverage,
+        "alignment": a.alignment.to_dict(),
+        "max_dt": float(max_dt),
+        "offset": float(offset),
+    }
