@@ -1,0 +1,183 @@
+"""A folder of images (any camera), plus the image-listing helpers every layout shares.
+
+Files are taken in *natural* order (``frame2`` before ``frame10``). Opening reads no pixel: the image size
+comes from the PNG/JPEG header of the first file (a full decode only for other formats).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import struct
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..errors import CalibrationError, ConfigError, SourceError
+from .base import ImageListSource, read_image, select
+from .textfiles import require_path
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm")
+"""Extensions (lower case) recognised as images when no glob pattern is given."""
+
+_GLOB_CHARS = set("*?[")
+
+
+def natural_key(name: str) -> tuple:
+    """Sort key comparing runs of digits as numbers: ``frame2 < frame10``, case-insensitive otherwise."""
+    parts = re.split(r"(\d+)", name)
+    return tuple((0, int(p), p) if p.isdigit() else (1, p.lower(), p) for p in parts)
+
+
+def natural_sorted(paths: Iterable[Path]) -> list[Path]:
+    """``paths`` sorted by :func:`natural_key` of their names."""
+    return sorted(paths, key=lambda p: natural_key(p.name))
+
+
+def has_glob(text: str) -> bool:
+    return any(c in _GLOB_CHARS for c in text)
+
+
+def list_images(folder: str | Path, pattern: str | None = None,
+                extensions: Iterable[str] = IMAGE_EXTENSIONS) -> list[Path]:
+    """Image files of ``folder`` in natural order (not recursive).
+
+    With ``pattern`` (a glob relative to ``folder``, e.g. ``"left_*.png"``) every matching file is taken;
+    otherwise files whose extension is in ``extensions`` (case-insensitive). An empty result raises
+    :class:`SourceError` saying which folder and which pattern or extensions were looked for.
+    """
+    folder = require_path(folder, "image folder", kind="dir")
+    exts = tuple(e.lower() for e in extensions)
+    if pattern is not None:
+        files = [p for p in folder.glob(pattern) if p.is_file()]
+        if not files:
+            raise SourceError(f"no files in {folder} match the pattern {pattern!r}")
+    else:
+        files = [p for p in folder.iterdir() if p.suffix.lower() in exts and p.is_file()]
+        if not files:
+            raise SourceError(f"no images in {folder} (looked for files ending in {', '.join(exts)})")
+    return natural_sorted(files)
+
+
+def _png_size(head: bytes) -> tuple[int, int] | None:
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 24:
+        w, h = struct.unpack(">II", head[16:24])
+        return int(w), int(h)
+    return None
+
+
+def _jpeg_size(path: Path) -> tuple[int, int] | None:
+    sof = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+    with open(path, "rb") as f:
+        if f.read(2) != b"\xff\xd8":
+            return None
+        for _ in range(1000):  # segments before the frame header; a bound against garbage
+            b = f.read(1)
+            while b == b"\xff":
+                b = f.read(1)
+            if not b:
+                return None
+            marker = b[0]
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+                continue
+            seg = f.read(2)
+            if len(seg) < 2:
+                return None
+            length = struct.unpack(">H", seg)[0]
+            if marker in sof:
+                data = f.read(5)
+                if len(data) < 5:
+                    return None
+                h, w = struct.unpack(">HH", data[1:5])
+                return (int(w), int(h)) if w > 0 and h > 0 else None
+            if length < 2:
+                return None
+            f.seek(length - 2, 1)
+    return None
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image file in pixels, from the PNG/JPEG header without decoding the pixels.
+
+    Other formats, or headers that cannot be parsed, are decoded with OpenCV (ImageReadError names the file).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(32)
+        size = _png_size(head) or (_jpeg_size(path) if head[:2] == b"\xff\xd8" else None)
+    except OSError:
+        size = None
+    if size is not None and size[0] > 0 and size[1] > 0:
+        return size
+    image = read_image(path)
+    return int(image.shape[1]), int(image.shape[0])
+
+
+def resolve_camera(camera: Intrinsics | float | None, width: int, height: int,
+                   default: Intrinsics | None = None, where: str = "images") -> Intrinsics:
+    """The intrinsics of ``width`` x ``height`` images from what the user gave.
+
+    ``camera`` may be an :class:`Intrinsics` (must be for that size: CalibrationError otherwise), a focal
+    length in pixels (principal point at the centre, no distortion), or None for ``default`` when given,
+    else ``Intrinsics.from_focal(width, height)`` (focal 1.2 x max(width, height)).
+    """
+    if camera is None:
+        camera = default if default is not None else Intrinsics.from_focal(width, height)
+    elif isinstance(camera, (int, float)) and not isinstance(camera, bool):
+        camera = Intrinsics.from_focal(width, height, float(camera))
+    elif not isinstance(camera, Intrinsics):
+        raise ConfigError(f"camera must be Intrinsics, a focal length in pixels or None (got {camera!r})")
+    if (camera.width, camera.height) != (int(width), int(height)):
+        raise CalibrationError(f"{where}: images are {width}x{height} but the intrinsics are for "
+                               f"{camera.width}x{camera.height}")
+    return camera
+
+
+def check_fps(fps: float) -> float:
+    try:
+        value = float(fps)
+    except (TypeError, ValueError):
+        raise ConfigError(f"fps must be a positive number (got {fps!r})") from None
+    if not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"fps must be a positive number (got {fps!r})")
+    return value
+
+
+def open_folder(path: str | Path, *, camera: Intrinsics | float | None = None, fps: float = 30.0,
+                pattern: str | None = None, groundtruth: str | Path | None = None, max_dt: float = 0.02,
+                frame_skip: int = 1, max_frames: int | None = None) -> ImageListSource:
+    """Open a folder of images as a frame source.
+
+    Args:
+        path: the folder. Images are files with an extension of :data:`IMAGE_EXTENSIONS`, or the files
+            matching ``pattern``, in natural order.
+        camera: :class:`Intrinsics`, or a focal length in pixels, or None. **With None the intrinsics are a
+            guess**: ``Intrinsics.from_focal(w, h)`` (focal 1.2 x max(w, h), principal point at the centre,
+            no distortion) with (w, h) read off the first image.
+        fps: frame rate; timestamps are ``frame index / fps`` seconds (the index before frame skip).
+        pattern: optional glob relative to the folder (``"*.png"``, ``"cam0/*.jpg"``).
+        groundtruth: optional TUM-format file (``timestamp tx ty tz qx qy qz qw``, camera-to-world) in the
+            same time base (``index / fps``); each frame takes the pose nearest in time within ``max_dt``
+            seconds, NaN rows where none. Without it there is no ground truth.
+        frame_skip, max_frames: keep every ``frame_skip``-th image, at most ``max_frames``.
+    """
+    folder = require_path(path, "image folder", kind="dir")
+    fps = check_fps(fps)
+    files = list_images(folder, pattern)
+    keep = select(len(files), frame_skip, max_frames)
+    w, h = image_size(files[0])
+    cam = resolve_camera(camera, w, h, where=str(files[0]))
+    timestamps = keep / fps
+    gt = None
+    if groundtruth is not None:
+        from .tum import associate_nearest, read_tum_trajectory
+
+        gt_t, gt_poses = read_tum_trajectory(groundtruth)
+        match = associate_nearest(timestamps, gt_t, max_dt)
+        gt = np.full((len(keep), 4, 4), np.nan)
+        gt[match >= 0] = gt_poses[match[match >= 0]]
+    return ImageListSource(name=f"folder/{folder.name}", camera=cam, paths=[files[i] for i in keep],
+                           timestamps=timestamps, frame_ids=keep, gt_poses=gt)
