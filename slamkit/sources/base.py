@@ -43,7 +43,7 @@ class FrameSource:
         gt_poses: (N, 4, 4) camera-to-world ground truth or None; rows are NaN where a frame has none.
     """
 
-    name: str = "source"
+    name: str
     camera: Intrinsics
     timestamps: np.ndarray
     frame_ids: np.ndarray
