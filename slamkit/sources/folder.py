@@ -28,7 +28,7 @@ _GLOB_CHARS = set("*?[")
 def natural_key(name: str) -> tuple:
     """Sort key comparing runs of digits as numbers: ``frame2 < frame10``, case-insensitive otherwise."""
     parts = re.split(r"(\d+)", name)
-    return tuple((0, int(p), p) if p.isdigit() else (1, p.lower(), p) for p in parts)
+    return tuple((0, int(p), "") if p.isdigit() else (1, 0, p.lower()) for p in parts), name
 
 
 def natural_sorted(paths: Iterable[Path]) -> list[Path]:
