@@ -2,8 +2,9 @@
 
 from .camera import Intrinsics
 from .errors import SlamkitError
+from .sources import open_source
 from .types import Frame, Trajectory
 
 __version__ = "0.1.0"
 
-__all__ = ["Intrinsics", "SlamkitError", "Frame", "Trajectory", "__version__"]
+__all__ = ["Intrinsics", "SlamkitError", "Frame", "Trajectory", "open_source", "__version__"]
