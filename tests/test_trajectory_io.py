@@ -104,11 +104,9 @@ def test_comments_blank_lines_crlf_bom_and_commas(tmp_path):
     np.testing.assert_allclose(traj.poses[1, :3, :3], np.eye(3), atol=1e-15)  # quaternion normalised
 
 
-def test_real_tum_ground_truth_reads_if_present():
-    gt = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "tum" / "groundtruth-only" / "fr1_xyz" / "groundtruth.txt"
-    if not gt.exists():
-        pytest.skip(f"shared data not present: {gt}")
-    traj = read_trajectory(gt)
+@pytest.mark.shared_data
+def test_real_tum_ground_truth_reads_if_present(shared):
+    traj = read_trajectory(shared("tum/groundtruth-only/fr1_xyz/groundtruth.txt"))
     assert len(traj) > 100 and np.all(np.diff(traj.timestamps) > 0)
     np.testing.assert_allclose(traj.positions[0], [1.3563, 0.6305, 1.6380])
 

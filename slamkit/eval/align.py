@@ -50,6 +50,11 @@ class Alignment:
         object.__setattr__(self, "translation", np.array(self.translation, dtype=np.float64).reshape(3))
         object.__setattr__(self, "scale", float(self.scale))
 
+    def __repr__(self) -> str:
+        angle = np.degrees(np.arccos(np.clip((np.trace(self.rotation) - 1) / 2, -1.0, 1.0)))
+        return (f"Alignment(kind={self.kind!r}, scale={self.scale:.6g}, rotation={angle:.4g} deg, "
+                f"translation={np.array2string(self.translation, precision=4)})")
+
     def matrix(self) -> np.ndarray:
         """(4, 4) Sim(3) matrix ``[[s R, t], [0, 1]]`` (evo's ``alignment_transformation_sim3``)."""
         T = np.eye(4)

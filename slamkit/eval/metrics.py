@@ -116,6 +116,11 @@ class AteResult:
     def gt_time_coverage(self) -> float:
         return _time_coverage(self.gt_timestamps, self.gt_span)
 
+    def __repr__(self) -> str:
+        return (f"AteResult(rmse={self.rmse:.6g} m, mean={self.mean:.6g} m, max={self.max:.6g} m, "
+                f"matched={self.n_matched}/{self.n_est} estimate poses, {self.n_gt} ground-truth poses, "
+                f"align={self.alignment.kind}, scale={self.alignment.scale:.6g})")
+
     def to_dict(self) -> dict:
         """JSON-serialisable summary (no per-frame arrays)."""
         return {**self.stats.to_dict(), "matched": self.n_matched, "estimate_poses": self.n_est,
@@ -150,7 +155,13 @@ class RpeResult:
     def n_pairs(self) -> int:
         return len(self.pairs)
 
+    def __repr__(self) -> str:
+        return (f"RpeResult(translation rmse={self.translation.rmse:.6g} m, rotation rmse="
+                f"{self.rotation.rmse:.6g} deg, {self.n_pairs} pairs, delta={self.delta} {self.unit}, "
+                f"align={self.alignment.kind})")
+
     def to_dict(self) -> dict:
+        """JSON-serialisable summary (no per-pair arrays)."""
         return {"delta": self.delta, "unit": self.unit, "all_pairs": self.all_pairs, "pairs": self.n_pairs,
                 "translation": self.translation.to_dict(), "rotation_deg": self.rotation.to_dict()}
 
