@@ -9,23 +9,21 @@ from __future__ import annotations
 
 import numpy as np
 
-_EPS = 1e-12
-
-
 def normalize_quaternion(q_xyzw: np.ndarray) -> np.ndarray:
     """(..., 4) quaternions -> (..., 4) float64 unit quaternions with ``qw >= 0``.
 
-    Raises ``ValueError`` for a non-finite quaternion or one of (near) zero norm: it encodes no rotation.
+    Raises ``ValueError`` for a non-finite quaternion or one of zero norm: it encodes no rotation.
     """
     q = np.asarray(q_xyzw, dtype=np.float64)
     if q.shape[-1] != 4:
         raise ValueError(f"quaternions need 4 values (qx qy qz qw), got shape {q.shape}")
     if not np.isfinite(q).all():
         raise ValueError("quaternion has non-finite values")
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if (norm < _EPS).any():
+    scale = np.abs(q).max(axis=-1, keepdims=True)  # pre-scaling: no overflow/underflow in the norm
+    if (scale == 0).any():
         raise ValueError("quaternion has zero norm")
-    q = q / norm
+    q = q / scale
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., 3:4] < 0, -q, q)
 
 

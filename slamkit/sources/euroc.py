@@ -96,10 +96,11 @@ def read_euroc_sensor(path: str | Path) -> EurocSensor:
     non-finite value or an unsupported camera/distortion model)."""
     path = require_path(path, "EuRoC sensor.yaml")
     try:
-        raw = path.read_text(encoding="utf-8")
+        raw = path.read_bytes().decode("utf-8")
     except UnicodeDecodeError:
         raise FormatError(path, None, "is not UTF-8 text") from None
-    text = "\n".join(line.split("#", 1)[0] for line in raw.splitlines())  # drop comments, keep line numbers
+    lines = raw.replace("\r\n", "\n").replace("\r", "\n").split("\n")  # the line breaks of data_lines
+    text = "\n".join(line.split("#", 1)[0] for line in lines)  # drop comments, keep line numbers
     model = _yaml_scalar(text, "camera_model") or "pinhole"
     dmodel = _yaml_scalar(text, "distortion_model") or "radial-tangential"
     if model != "pinhole":

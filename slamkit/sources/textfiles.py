@@ -126,6 +126,8 @@ def parse_rows(path: str | Path, converters: Sequence[Converter], *, comment: st
 
 def check_finite(path: Path, values: np.ndarray, lines: np.ndarray, what: str = "value") -> None:
     """FormatError naming the first line of ``values`` (N, ...) that holds a NaN or an infinity."""
+    if len(values) == 0:
+        return
     bad = ~np.isfinite(values.reshape(len(values), -1)).all(axis=1)
     if bad.any():
         raise FormatError(path, int(lines[np.argmax(bad)]), f"{what} is not finite (nan or inf)")
