@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+
 def normalize_quaternion(q_xyzw: np.ndarray) -> np.ndarray:
     """(..., 4) quaternions -> (..., 4) float64 unit quaternions with ``qw >= 0``.
 
