@@ -209,7 +209,8 @@ def test_folder_opens_in_natural_order_with_skip_and_timestamps(tmp_path):
     (tmp_path / "notes.txt").write_text("not an image")
     src = open_folder(tmp_path, fps=10)
     assert len(src) == 7
-    assert [p.name for p in src.paths] == [f"frame{i}.{'jpg' if i == 4 else 'png'}" for i in [1, 2, 3, 4, 10, 11, 20]]
+    order = [1, 2, 3, 4, 10, 11, 20]
+    assert [p.name for p in src.paths] == [f"frame{i}.{'jpg' if i == 4 else 'png'}" for i in order]
     assert np.allclose(src.timestamps, np.arange(7) / 10)
     assert src.camera == Intrinsics.from_focal(W, H)  # the documented guess
     assert src.gt_poses is None and src.ground_truth() is None

@@ -71,15 +71,16 @@ def _sequence_folder(root: Path, sequence: str | int | None) -> tuple[Path, Path
     seq_root = root / "sequences"
     if seq_root.is_dir():
         available = sorted(p.name for p in seq_root.iterdir() if p.is_dir())
+        listed = ", ".join(available) or "none"
         if sequence is None:
             if len(available) != 1:
-                raise SourceError(f"{seq_root} holds {len(available)} sequences ({', '.join(available) or 'none'}):"
-                                  " choose one with sequence='NN'")
+                raise SourceError(f"{seq_root} holds {len(available)} sequences ({listed}): "
+                                  "choose one with sequence='NN'")
             name = available[0]
         else:
             name = str(sequence).zfill(2) if str(sequence).isdigit() else str(sequence)
             if name not in available:
-                raise SourceError(f"sequence {name!r} not in {seq_root} (available: {', '.join(available) or 'none'})")
+                raise SourceError(f"sequence {name!r} not in {seq_root} (available: {listed})")
         folder = seq_root / name
         poses_root = root
     else:
