@@ -1,0 +1,177 @@
+"""SlamConfig: every stage's configuration in one documented dataclass, presets by name, validation."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+from .errors import ConfigError
+from .features import MatchingConfig, available_extractors
+from .stages.ba import BundleAdjustmentConfig
+from .stages.initializer import InitializerConfig
+from .stages.keyframes import KeyframeConfig
+from .stages.mapper import MapperConfig
+from .stages.tracker import TrackerConfig
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Configuration of a :class:`~slamkit.Slam` run. Stage configs are nested; :meth:`with_overrides`
+    accepts the short names of the CLI and notebook sliders (``flow_threshold``, ``init_frames``, ...)."""
+
+    features: str = "orb"
+    """Feature extractor by registry name (``slamkit.features.available_extractors()``)."""
+    num_features: int = 2000
+    """Keypoints per frame the extractor aims for."""
+    frame_skip: int = 1
+    """Use every n-th frame of the source."""
+    max_frames: int | None = None
+    """Stop after this many (used) frames; None = all."""
+    max_lost_frames: int = 30
+    """After this many consecutive lost frames a new map segment is initialized."""
+    thumbnail_width: int = 160
+    """Keyframe thumbnails kept for viewers, pixels wide (0 = none)."""
+    seed: int = 0
+    """Seed of every random choice (RANSAC): same input and seed give the same trajectory."""
+    initializer: InitializerConfig = field(default_factory=InitializerConfig)
+    tracker: TrackerConfig = field(default_factory=TrackerConfig)
+    keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
+    mapper: MapperConfig = field(default_factory=MapperConfig)
+    ba: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
+
+    def validate(self) -> "SlamConfig":
+        if self.features not in available_extractors():
+            raise ConfigError(f"features: unknown extractor {self.features!r}; "
+                              f"available: {', '.join(available_extractors())}")
+        if self.num_features < 50:
+            raise ConfigError(f"num_features must be >= 50 (got {self.num_features})")
+        if self.frame_skip < 1:
+            raise ConfigError(f"frame_skip must be >= 1 (got {self.frame_skip})")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ConfigError(f"max_frames must be >= 1 or None (got {self.max_frames})")
+        if self.max_lost_frames < 1:
+            raise ConfigError(f"max_lost_frames must be >= 1 (got {self.max_lost_frames})")
+        for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.ba):
+            stage.validate()
+        if self.mapper.min_keyframe_points > self.initializer.min_points * 10:
+            raise ConfigError("mapper.min_keyframe_points is larger than any initial map could provide "
+                              f"({self.mapper.min_keyframe_points} > 10 x initializer.min_points)")
+        if self.initializer.min_tri_angle_deg < self.ba.min_tri_angle_deg:
+            raise ConfigError(
+                f"initializer.min_tri_angle_deg ({self.initializer.min_tri_angle_deg}) is below "
+                f"ba.min_tri_angle_deg ({self.ba.min_tri_angle_deg}): filtering would delete the initial map")
+        if self.tracker.min_inliers > self.keyframes.min_tracked_matches * 4:
+            raise ConfigError(f"tracker.min_inliers ({self.tracker.min_inliers}) contradicts "
+                              f"keyframes.min_tracked_matches ({self.keyframes.min_tracked_matches})")
+        return self
+
+    # ----------------------------------------------------------------- overrides
+    def with_overrides(self, **values: Any) -> "SlamConfig":
+        """Copy with values changed. Keys: a field (``frame_skip``), a short alias (``flow_threshold``,
+        ``init_frames``, ``min_tracked_matches``, ``init_strategy``) or a dotted path (``tracker.min_inliers``)."""
+        cfg = self
+        for key, value in values.items():
+            path = ALIASES.get(key, key).split(".")
+            cfg = _set(cfg, path, value, key)
+        return cfg.validate()
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SlamConfig":
+        return _from_dict(cls, d).validate()
+
+    @classmethod
+    def preset(cls, name: str) -> "SlamConfig":
+        if name not in PRESETS:
+            raise ConfigError(f"unknown preset {name!r}; presets: {', '.join(sorted(PRESETS))}")
+        return cls().with_overrides(**PRESETS[name])
+
+
+ALIASES = {
+    "flow_threshold": "keyframes.flow_threshold",
+    "min_tracked_matches": "keyframes.min_tracked_matches",
+    "init_frames": "initializer.init_frames",
+    "init_strategy": "initializer.strategy",
+    "min_inliers": "tracker.min_inliers",
+    "local_window": "ba.local_window",
+}
+
+PRESETS: dict[str, dict[str, Any]] = {
+    "default": {},
+    # the source paper's settings (§3): flow 0.05, 50 matches, 20 initialization frames
+    "seed": {"flow_threshold": 0.05, "min_tracked_matches": 50, "init_frames": 20},
+    # fewer features and a smaller local BA for speed
+    "fast": {"num_features": 1200, "ba.local_window": 4, "ba.local_iterations": 10, "mapper.neighbors": 3},
+    # more features, more keyframes, larger windows
+    "accurate": {"num_features": 3000, "flow_threshold": 0.03, "ba.local_window": 10, "mapper.neighbors": 6,
+                 "ba.global_max_keyframes": 600},
+    "sift": {"features": "sift"},
+}
+
+
+def _set(obj: Any, path: list[str], value: Any, key: str) -> Any:
+    names = {f.name: f for f in fields(obj)}
+    if path[0] not in names:
+        raise ConfigError(f"unknown configuration parameter {key!r} (no field {path[0]!r} in "
+                          f"{type(obj).__name__}; fields: {', '.join(names)})")
+    current = getattr(obj, path[0])
+    if len(path) > 1:
+        if not dataclasses.is_dataclass(current):
+            raise ConfigError(f"configuration parameter {key!r}: {path[0]!r} has no sub-fields")
+        return replace(obj, **{path[0]: _set(current, path[1:], value, key)})
+    return replace(obj, **{path[0]: _coerce(current, value, key)})
+
+
+def _coerce(current: Any, value: Any, key: str) -> Any:
+    """Convert ``value`` to the type of the current value (strings from the CLI, numpy scalars, ...)."""
+    if dataclasses.is_dataclass(current):
+        if isinstance(value, dict):
+            return _from_dict(type(current), value)
+        raise ConfigError(f"configuration parameter {key!r} needs a mapping, got {value!r}")
+    try:
+        if isinstance(current, bool):
+            if isinstance(value, str):
+                if value.lower() in ("1", "true", "yes", "on"):
+                    return True
+                if value.lower() in ("0", "false", "no", "off"):
+                    return False
+                raise ValueError(value)
+            return bool(value)
+        if isinstance(current, int):
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError(value)
+            return int(value)
+        if isinstance(current, float):
+            return float(value)
+        if current is None:  # optional int (max_frames)
+            return None if value in (None, "", "none", "None") else int(value)
+        if isinstance(current, str):
+            return str(value)
+        if isinstance(current, tuple):
+            return tuple(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"configuration parameter {key!r}: {value!r} is not a valid "
+                          f"{type(current).__name__}") from None
+    return value
+
+
+def _from_dict(cls, d: dict) -> Any:
+    names = {f.name: f for f in fields(cls)}
+    unknown = set(d) - set(names)
+    if unknown:
+        raise ConfigError(f"unknown configuration parameters for {cls.__name__}: {', '.join(sorted(unknown))}")
+    default = cls()
+    kwargs = {}
+    for k, v in d.items():
+        cur = getattr(default, k)
+        if dataclasses.is_dataclass(cur) and isinstance(v, dict):
+            kwargs[k] = _from_dict(type(cur), v)
+        else:
+            kwargs[k] = _coerce(cur, v, k)
+    return cls(**kwargs)
+
+
+__all__ = ["SlamConfig", "PRESETS", "ALIASES", "MatchingConfig"]

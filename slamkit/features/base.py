@@ -1,0 +1,204 @@
+"""Feature types, the extractor registry, and descriptor matching (brute force and guided by projection)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Protocol
+
+import numpy as np
+
+from ..errors import ConfigError
+
+# popcount of every byte value, for Hamming distances of binary descriptors
+_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
+
+
+@dataclass(frozen=True, eq=False)
+class Features:
+    """Local features of one image.
+
+    keypoints: (N, 2) float64 pixels as detected (distorted image).
+    descriptors: (N, D) uint8 (binary, packed bits) or float32.
+    scores: (N,) float32 detector response; sizes: (N,) float32 keypoint diameter in pixels.
+    binary: True for packed binary descriptors (Hamming distance), False for float (L2).
+    """
+
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    scores: np.ndarray
+    binary: bool
+    sizes: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.keypoints)
+
+
+class Extractor(Protocol):
+    """Anything with ``extract(gray (H, W) uint8) -> Features``."""
+
+    name: str
+
+    def extract(self, gray: np.ndarray) -> Features: ...
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """Descriptor matching parameters."""
+
+    ratio: float = 0.8
+    """Lowe's ratio test: best distance < ratio x second best (1.0 disables it)."""
+    mutual: bool = True
+    """Keep only mutual nearest neighbours."""
+    max_hamming: int = 80
+    """Largest Hamming distance (of 256 bits) accepted for binary descriptors."""
+    max_l2: float = 0.9
+    """Largest L2 distance accepted for unit-normalised float descriptors."""
+
+
+_REGISTRY: dict[str, Callable[..., Extractor]] = {}
+
+
+def register_extractor(name: str) -> Callable:
+    """Class decorator: make an extractor available under ``name`` (config, CLI and notebook dropdowns)."""
+
+    def deco(factory):
+        _REGISTRY[name] = factory
+        return factory
+
+    return deco
+
+
+def available_extractors() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+def create_extractor(name: str, **options) -> Extractor:
+    if name not in _REGISTRY:
+        raise ConfigError(f"features: unknown extractor {name!r}; available: {', '.join(available_extractors())}")
+    return _REGISTRY[name](**options)
+
+
+def descriptor_distance(d1: np.ndarray, d2: np.ndarray, binary: bool) -> np.ndarray:
+    """Row-wise distance of paired descriptors (N, D), (N, D) -> (N,) float32 (Hamming bits or L2)."""
+    if binary:
+        return _POPCOUNT[np.bitwise_xor(d1, d2)].sum(axis=1, dtype=np.int32).astype(np.float32)
+    diff = d1.astype(np.float32) - d2.astype(np.float32)
+    return np.sqrt(np.einsum("ij,ij->i", diff, diff))
+
+
+def _max_distance(binary: bool, cfg: MatchingConfig) -> float:
+    return float(cfg.max_hamming) if binary else float(cfg.max_l2)
+
+
+def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, binary: bool,
+                      cfg: MatchingConfig = MatchingConfig()) -> np.ndarray:
+    """Nearest-neighbour matching with ratio test and mutual check.
+
+    Returns (M, 2) int64 index pairs (i in desc1, j in desc2), sorted by i.
+    """
+    import cv2
+
+    if len(desc1) < 2 or len(desc2) < 2:
+        return np.empty((0, 2), np.int64)
+    norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
+    d1 = desc1 if binary else desc1.astype(np.float32)
+    d2 = desc2 if binary else desc2.astype(np.float32)
+    bf = cv2.BFMatcher(norm)
+    knn = bf.knnMatch(d1, d2, k=2)
+    rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2]
+    if not rows:
+        return np.empty((0, 2), np.int64)
+    a = np.array(rows, dtype=np.float64)
+    keep = (a[:, 2] < cfg.ratio * a[:, 3]) & (a[:, 2] <= _max_distance(binary, cfg))
+    pairs = a[keep, :2].astype(np.int64)
+    if cfg.mutual and len(pairs):
+        back = bf.match(d2, d1)
+        best_back = np.full(len(desc2), -1, np.int64)
+        for m in back:
+            best_back[m.queryIdx] = m.trainIdx
+        pairs = pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
+    return pairs
+
+
+def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray, kp_desc: np.ndarray,
+                 binary: bool, radius: float, cfg: MatchingConfig = MatchingConfig(),
+                 kp_taken: np.ndarray | None = None) -> np.ndarray:
+    """Match projected map points to keypoints within ``radius`` pixels (ORB-SLAM's SearchByProjection).
+
+    proj: (M, 2) predicted pixel positions of map points; point_desc: (M, D) their descriptors.
+    keypoints: (N, 2) pixels; kp_desc: (N, D). kp_taken: (N,) bool, keypoints not to use.
+    Returns (K, 2) int64 pairs (map point index, keypoint index), one-to-one, best distance wins.
+    """
+    M, N = len(proj), len(keypoints)
+    if M == 0 or N == 0:
+        return np.empty((0, 2), np.int64)
+    cell = max(float(radius), 1.0)
+    kc = np.floor(keypoints / cell).astype(np.int64)
+    width = int(kc[:, 0].max()) + 3
+    key = (kc[:, 1] + 1) * width + (kc[:, 0] + 1)
+    order = np.argsort(key, kind="stable")
+    skey = key[order]
+    pc = np.floor(proj / cell).astype(np.int64)
+    # candidate cells: the 3x3 neighbourhood of each projection
+    offs = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
+    cx = pc[:, None, 0] + offs[None, :, 0]
+    cy = pc[:, None, 1] + offs[None, :, 1]
+    valid = (cx >= -1) & (cx <= width - 2) & (cy >= -1)
+    ckey = np.where(valid, (cy + 1) * width + (cx + 1), -1)
+    lo = np.searchsorted(skey, ckey, side="left")
+    hi = np.searchsorted(skey, ckey, side="right")
+    counts = np.where(valid, hi - lo, 0).ravel()
+    total = int(counts.sum())
+    if total == 0:
+        return np.empty((0, 2), np.int64)
+    pt = np.repeat(np.repeat(np.arange(M), 9), counts)
+    start = np.repeat(lo.ravel(), counts)
+    within = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+    kp = order[start + within]
+    d2 = ((keypoints[kp] - proj[pt]) ** 2).sum(axis=1)
+    ok = d2 <= radius * radius
+    if kp_taken is not None:
+        ok &= ~kp_taken[kp]
+    pt, kp = pt[ok], kp[ok]
+    if len(pt) == 0:
+        return np.empty((0, 2), np.int64)
+    dist = descriptor_distance(point_desc[pt], kp_desc[kp], binary)
+    ok = dist <= _max_distance(binary, cfg)
+    pt, kp, dist = pt[ok], kp[ok], dist[ok]
+    if len(pt) == 0:
+        return np.empty((0, 2), np.int64)
+    # best and second-best candidate per map point (ratio test)
+    o = np.lexsort((dist, pt))
+    pt, kp, dist = pt[o], kp[o], dist[o]
+    first = np.r_[True, pt[1:] != pt[:-1]]
+    idx_first = np.flatnonzero(first)
+    has_second = np.r_[idx_first[1:], len(pt)] - idx_first > 1
+    second = np.full(len(idx_first), np.inf, np.float32)
+    second[has_second] = dist[idx_first[has_second] + 1]
+    best = idx_first[(dist[idx_first] < cfg.ratio * second) | ~has_second]
+    pt, kp, dist = pt[best], kp[best], dist[best]
+    # one map point per keypoint: keep the closest descriptor
+    o = np.lexsort((dist, kp))
+    pt, kp = pt[o], kp[o]
+    first = np.r_[True, kp[1:] != kp[:-1]]
+    return np.stack([pt[first], kp[first]], axis=1).astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameFeatures:
+    """A frame as the SLAM stages see it: features, undistorted keypoints and their colours.
+
+    keypoints: (N, 2) float64 undistorted pixels (ideal pinhole camera); colors: (N, 3) uint8 RGB;
+    thumbnail: small RGB copy of the image for viewers (None when not kept).
+    """
+
+    index: int
+    frame_id: int
+    timestamp: float
+    features: Features
+    keypoints: np.ndarray
+    colors: np.ndarray
+    thumbnail: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.keypoints)

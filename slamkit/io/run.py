@@ -1,0 +1,93 @@
+"""Saving a SLAM run: trajectories, COLMAP model, PLY and summary, written atomically as one folder.
+
+Layout of ``DIR`` (the main segment's map at the top; every segment under ``segments/`` when there are
+several):
+
+- ``trajectory_tum.txt`` every posed frame (TUM: timestamp tx ty tz qx qy qz qw, camera-to-world)
+- ``keyframes_tum.txt`` keyframes only; ``trajectory_kitti.txt`` KITTI format (12 values per line)
+- ``sparse/`` COLMAP binary model (``pycolmap.Reconstruction(DIR / "sparse")``); ``points.ply``
+- ``summary.json`` timings, counts, Table-2 columns and the config; ``frames.csv`` one row per frame
+- ``groundtruth_tum.txt`` the source's ground truth of the used frames, when it has one
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .atomic import atomic_dir
+from .trajectory import write_kitti, write_tum
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..pipeline import Slam
+
+
+def save_run(slam: "Slam", out_dir: str | Path) -> Path:
+    """Write ``slam``'s state to ``out_dir`` (replaced atomically: a crash never leaves half a folder)."""
+    out_dir = Path(out_dir)
+    with atomic_dir(out_dir) as tmp:
+        _write_segment(slam, None, tmp)
+        if len(slam.segments) > 1:
+            for seg in slam.segments:
+                _write_segment(slam, seg.id, tmp / "segments" / f"segment_{seg.id:02d}")
+        (tmp / "summary.json").write_text(json.dumps(_jsonable(slam.summary()), indent=2))
+        (tmp / "frames.csv").write_text(_frames_csv(slam))
+        gt = _ground_truth(slam)
+        if gt is not None and len(gt):
+            write_tum(tmp / "groundtruth_tum.txt", gt)
+    return out_dir
+
+
+def _write_segment(slam: "Slam", segment: int | None, folder: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    seg = slam.main_segment if segment is None else slam.segments[segment]
+    write_tum(folder / "trajectory_tum.txt", slam.trajectory(segment=segment))
+    write_tum(folder / "keyframes_tum.txt", slam.trajectory(keyframes_only=True, segment=segment))
+    write_kitti(folder / "trajectory_kitti.txt", slam.trajectory(segment=segment))
+    if seg is None:
+        return
+    rec = seg.slam_map.reconstruction
+    (folder / "sparse").mkdir(exist_ok=True)
+    rec.write_binary(str(folder / "sparse"))
+    rec.export_PLY(str(folder / "points.ply"))
+
+
+def _frames_csv(slam: "Slam") -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["index", "frame_id", "timestamp", "status", "segment", "keyframe_image_id"])
+    for r in slam.records:
+        w.writerow([r.index, r.frame_id, f"{r.timestamp:.6f}", r.status, r.segment, r.keyframe_image_id])
+    return buf.getvalue()
+
+
+def _ground_truth(slam: "Slam"):
+    from ..types import Trajectory
+
+    src = slam.source
+    gt = getattr(src, "gt_poses", None)
+    if gt is None:
+        return None
+    idx = slam.indices[: len(slam.records)] if slam.records else slam.indices
+    poses = gt[idx]
+    ok = np.isfinite(poses).all(axis=(1, 2))
+    return Trajectory(np.asarray(src.timestamps)[idx][ok], poses[ok])
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, (np.integer,)):
+        return int(x)
+    if isinstance(x, (np.floating,)):
+        return float(x)
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    return x

@@ -1,0 +1,217 @@
+"""The map: pycolmap's Reconstruction and CorrespondenceGraph, grown keyframe by keyframe in memory.
+
+Wiring (no database file): ``Reconstruction`` holds cameras, keyframe images with poses and 3D points;
+``CorrespondenceGraph`` holds verified 2D-2D matches between keyframes; ``ObservationManager`` keeps the
+two consistent; ``IncrementalTriangulator`` creates, continues, merges and completes tracks from them
+(COLMAP's incremental mapper does the same with a ``DatabaseCache``). Keyframe bookkeeping that pycolmap
+does not keep (descriptors, keypoint colours, source frame index) lives in :class:`Keyframe`.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from .camera import Intrinsics
+from .features import Features
+
+CAMERA_ID = 1
+
+
+@dataclass(eq=False)
+class Keyframe:
+    """A keyframe's data beside its pycolmap Image.
+
+    keypoints: (N, 2) float64 undistorted pixels (the Image's points2D); features: as extracted (distorted
+    pixels, descriptors); colors: (N, 3) uint8 RGB at the keypoints; thumbnail: small RGB image for viewers.
+    """
+
+    image_id: int
+    frame_index: int
+    timestamp: float
+    keypoints: np.ndarray
+    features: Features
+    colors: np.ndarray
+    thumbnail: np.ndarray | None = None
+
+
+def rigid_from_matrix(m: np.ndarray) -> pycolmap.Rigid3d:
+    """(3, 4) or (4, 4) [R|t] -> pycolmap.Rigid3d."""
+    m = np.asarray(m, dtype=np.float64)
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(m[:3, :3]), m[:3, 3].copy())
+
+
+def matrix_from_rigid(r: pycolmap.Rigid3d) -> np.ndarray:
+    """pycolmap.Rigid3d -> (4, 4) float64."""
+    out = np.eye(4)
+    out[:3] = r.matrix()
+    return out
+
+
+def pycolmap_camera(camera: Intrinsics) -> pycolmap.Camera:
+    """PINHOLE camera of the undistorted keypoints."""
+    return pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
+                           params=[camera.fx, camera.fy, camera.cx, camera.cy], camera_id=CAMERA_ID)
+
+
+class SlamMap:
+    """One map segment: a pycolmap Reconstruction grown in memory, plus keyframe data.
+
+    Image ids are assigned in insertion order starting at 1; ``keyframes`` holds every registered keyframe.
+    """
+
+    def __init__(self, camera: Intrinsics, triangulation: pycolmap.IncrementalTriangulatorOptions | None = None):
+        self.camera = camera.pinhole
+        self.reconstruction = pycolmap.Reconstruction()
+        self.reconstruction.add_camera_with_trivial_rig(pycolmap_camera(self.camera))
+        self.graph = pycolmap.CorrespondenceGraph()
+        self.observations = pycolmap.ObservationManager(self.reconstruction, self.graph)
+        self.triangulator = pycolmap.IncrementalTriangulator(self.graph, self.reconstruction, self.observations)
+        if triangulation is None:
+            triangulation = pycolmap.IncrementalTriangulatorOptions()
+            triangulation.ignore_two_view_tracks = False  # default True triangulates nothing when streaming
+        self.triangulation = triangulation
+        self.keyframes: dict[int, Keyframe] = {}
+        self._pending: dict[int, Keyframe] = {}
+        self._observed: set[int] = set()
+        self._next_image_id = 1
+
+    # ----------------------------------------------------------------- keyframes
+    @property
+    def pycolmap_camera(self) -> pycolmap.Camera:
+        return self.reconstruction.camera(CAMERA_ID)
+
+    def add_image(self, frame_index: int, timestamp: float, keypoints: np.ndarray, features: Features,
+                  colors: np.ndarray, thumbnail: np.ndarray | None = None) -> int:
+        """Add a keyframe candidate (image + correspondence-graph node); returns its image id.
+
+        Add its two-view matches next (:meth:`add_matches`), then :meth:`register` it with a pose.
+        """
+        iid = self._next_image_id
+        self._next_image_id += 1
+        image = pycolmap.Image(name=f"frame_{frame_index:06d}", keypoints=np.ascontiguousarray(keypoints, np.float64),
+                               camera_id=CAMERA_ID, image_id=iid)
+        self.reconstruction.add_image_with_trivial_frame(image)
+        self.graph.add_image(iid, len(keypoints))
+        self._pending[iid] = Keyframe(iid, frame_index, timestamp, np.asarray(keypoints, np.float64), features,
+                                      colors, thumbnail)
+        return iid
+
+    def add_matches(self, image_id1: int, image_id2: int, matches: np.ndarray) -> None:
+        """Add verified keypoint matches (M, 2) (index in image 1, index in image 2) to the graph."""
+        if len(matches) == 0:
+            return
+        tvg = pycolmap.TwoViewGeometry()
+        tvg.config = int(pycolmap.TwoViewGeometryConfiguration.CALIBRATED)
+        tvg.inlier_matches = np.ascontiguousarray(matches, dtype=np.uint32)
+        self.graph.add_two_view_geometry(image_id1, image_id2, tvg)
+
+    def observe(self, *image_ids: int) -> None:
+        """Hand pending images, with all their matches added, to the ObservationManager.
+
+        Must happen before any of them (or a matched image) is registered: registering an image updates
+        the statistics of the images it has correspondences with.
+        """
+        for iid in image_ids:
+            self.observations.add_image(iid)
+            self._observed.add(iid)
+
+    def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
+        """Give a pending image its pose and register it (it becomes a keyframe)."""
+        if image_id not in self._observed:
+            self.observe(image_id)
+        self.reconstruction.frame(image_id).rig_from_world = copy.copy(cam_from_world)
+        self.observations.register_frame(image_id)
+        self.keyframes[image_id] = self._pending.pop(image_id)
+
+    def deregister(self, image_id: int) -> None:
+        """Remove a keyframe's observations and registration (seed §3.5: too few map points)."""
+        self.observations.deregister_frame(image_id)
+        self.keyframes.pop(image_id, None)
+
+    def add_observations(self, image_id: int, point2D_idxs: np.ndarray, point3D_ids: np.ndarray) -> int:
+        """Add tracked 2D-3D observations to existing tracks; returns how many were added."""
+        image = self.reconstruction.image(image_id)
+        added = 0
+        for j, p in zip(np.asarray(point2D_idxs).tolist(), np.asarray(point3D_ids).tolist()):
+            if not self.reconstruction.exists_point3D(p) or image.point2D(j).has_point3D():
+                continue
+            if image.has_point3D(p):  # one observation per image and track
+                continue
+            self.observations.add_observation(p, pycolmap.TrackElement(image_id, j))
+            added += 1
+        return added
+
+    def triangulate(self, image_id: int) -> int:
+        """Continue and create tracks through the new keyframe (COLMAP ``triangulate_image``)."""
+        n = self.triangulator.triangulate_image(self.triangulation, image_id)
+        self.color_new_points(image_id)
+        return n
+
+    def color_new_points(self, image_id: int) -> None:
+        kf = self.keyframes.get(image_id)
+        if kf is None:
+            return
+        image = self.reconstruction.image(image_id)
+        for j in image.get_observation_point2D_idxs():
+            p = self.reconstruction.point3D(image.point2D(j).point3D_id)
+            if not p.color.any():
+                p.color = kf.colors[j]
+
+    # ----------------------------------------------------------------- queries
+    def cam_from_world(self, image_id: int) -> pycolmap.Rigid3d:
+        """A copy of a keyframe's pose (pycolmap returns live references)."""
+        return copy.copy(self.reconstruction.frame(image_id).rig_from_world)
+
+    def point3D_ids(self, image_id: int) -> np.ndarray:
+        """(N,) int64 3D point id of each keypoint of the keyframe, -1 where none."""
+        image = self.reconstruction.image(image_id)
+        out = np.full(image.num_points2D(), -1, np.int64)
+        idx = image.get_observation_point2D_idxs()
+        if idx:
+            out[idx] = [image.point2D(j).point3D_id for j in idx]
+        return out
+
+    def points_xyz(self, point3D_ids) -> np.ndarray:
+        """(M, 3) positions of the given points."""
+        pts = self.reconstruction.points3D
+        return np.array([pts[int(p)].xyz for p in point3D_ids], dtype=np.float64).reshape(-1, 3)
+
+    def covisible(self, image_id: int, limit: int | None = None) -> list[tuple[int, int]]:
+        """Keyframes sharing 3D points with ``image_id``: [(image id, shared points)], most shared first."""
+        counts: dict[int, int] = {}
+        pts = self.reconstruction.points3D
+        for p in self.point3D_ids(image_id):
+            if p < 0:
+                continue
+            for el in pts[int(p)].track.elements:
+                if el.image_id != image_id:
+                    counts[el.image_id] = counts.get(el.image_id, 0) + 1
+        ranked = sorted(((i, c) for i, c in counts.items() if i in self.keyframes), key=lambda x: (-x[1], x[0]))
+        return ranked[:limit] if limit is not None else ranked
+
+    @property
+    def num_keyframes(self) -> int:
+        return len(self.keyframes)
+
+    @property
+    def num_points(self) -> int:
+        return self.reconstruction.num_points3D()
+
+    def mean_reprojection_error(self) -> float:
+        self.reconstruction.update_point_3d_errors()
+        return float(self.reconstruction.compute_mean_reprojection_error())
+
+    def points_per_image(self) -> float:
+        return float(self.reconstruction.compute_mean_observations_per_reg_image())
+
+    def point_cloud(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids (M,), xyz (M, 3), rgb (M, 3) uint8) of every 3D point."""
+        pts = self.reconstruction.points3D
+        ids = np.fromiter(pts.keys(), dtype=np.int64, count=len(pts))
+        xyz = np.array([pts[int(i)].xyz for i in ids]).reshape(-1, 3)
+        rgb = np.array([pts[int(i)].color for i in ids], dtype=np.uint8).reshape(-1, 3)
+        return ids, xyz, rgb

@@ -1,0 +1,495 @@
+"""Slam: owns the state, composes the stages, steps one frame per call. Imports no UI.
+
+One frame: extract features -> (initializing: Initializer.step) | Tracker.step against the local map ->
+KeyframeSelector.step (flow score, tracked matches) -> [keyframe] Mapper.step -> BundleAdjuster.step ->
+StepResult -> callbacks. Every frame's pose is stored relative to its reference keyframe, so frames follow
+their keyframe through bundle adjustment, and normalization only rescales those relative translations.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from .config import SlamConfig
+from .errors import ConfigError
+from .features import FrameFeatures, create_extractor
+from .map import SlamMap
+from .sources.base import FrameSource
+from .stages.ba import BundleAdjuster
+from .stages.flow import flow_score
+from .stages.initializer import Initializer
+from .stages.keyframes import KeyframeDecision, KeyframeSelector
+from .stages.mapper import Mapper
+from .stages.tracker import LocalMap, Tracker
+from .types import Frame, Trajectory
+
+# frame statuses
+INITIALIZING, INITIALIZED, TRACKED, LOST, SKIPPED = "initializing", "initialized", "tracked", "lost", "skipped"
+
+
+@dataclass(frozen=True, eq=False)
+class StepResult:
+    """What happened to one frame. ``cam_from_world`` is (4, 4) in the frame's segment, or None."""
+
+    frame_index: int
+    frame_id: int
+    timestamp: float
+    status: str
+    message: str
+    segment: int
+    is_keyframe: bool = False
+    keyframe_reason: str = ""
+    flow: float = float("nan")
+    matches: int = 0
+    """Tracked matches to the last keyframe (the number compared with min_tracked_matches)."""
+    inliers: int = 0
+    """Pose inliers (2D-3D) of the frame."""
+    cam_from_world: np.ndarray | None = None
+    num_keyframes: int = 0
+    num_points: int = 0
+    ba: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
+    posed_frames: tuple[int, ...] = ()
+    """Frames that received a pose with this step (the initialization window on success)."""
+
+    @property
+    def has_pose(self) -> bool:
+        return self.cam_from_world is not None
+
+    @property
+    def world_from_cam(self) -> np.ndarray | None:
+        return None if self.cam_from_world is None else np.linalg.inv(self.cam_from_world)
+
+    def __str__(self) -> str:
+        kf = f"KEYFRAME ({self.keyframe_reason})" if self.is_keyframe else (
+            f"no keyframe ({self.keyframe_reason})" if self.keyframe_reason else "")
+        flow = "" if np.isnan(self.flow) else f" flow={self.flow:.3f}"
+        ms = sum(self.timings.values()) * 1e3
+        return (f"frame {self.frame_index} [{self.status}]{flow} matches={self.matches} inliers={self.inliers} "
+                f"kf={self.num_keyframes} pts={self.num_points} {ms:.0f} ms {kf} {self.message}".rstrip())
+
+
+@dataclass(eq=False)
+class FrameRecord:
+    """Pose bookkeeping of one frame: pose = rel_pose (cam_from_refcam) @ pose of the reference keyframe."""
+
+    index: int
+    frame_id: int
+    timestamp: float
+    status: str
+    segment: int = -1
+    ref_image_id: int = -1
+    rel_pose: np.ndarray | None = None
+    keyframe_image_id: int = -1
+
+
+@dataclass(eq=False)
+class Segment:
+    """One map segment: its map and the frames posed in it."""
+
+    id: int
+    slam_map: SlamMap
+    frames: list[int] = field(default_factory=list)
+
+
+Callback = Callable[["Slam", StepResult], None]
+
+
+class Slam:
+    """Monocular SLAM over a frame source, one frame per :meth:`step`.
+
+    >>> slam = Slam(open_source("default"), SlamConfig())      # doctest: +SKIP
+    >>> for result in slam: print(result)                      # doctest: +SKIP
+    >>> slam.save("runs/demo")                                 # doctest: +SKIP
+    """
+
+    def __init__(self, source: FrameSource | str, config: SlamConfig | str | None = None,
+                 callbacks: list[Callback] | None = None):
+        if config is None:
+            config = SlamConfig()
+        elif isinstance(config, str):
+            config = SlamConfig.preset(config)
+        self.config = config.validate()
+        if isinstance(source, (str, Path)):
+            from .sources import open_source
+
+            source = open_source(str(source))
+        self.source = source
+        self.callbacks: list[Callback] = list(callbacks or [])
+        self.reset()
+
+    # ----------------------------------------------------------------- lifecycle
+    def reset(self, config: SlamConfig | None = None) -> None:
+        """Start over (with a new config if given): empty map, first frame next."""
+        if config is not None:
+            self.config = config.validate()
+        c = self.config
+        self.camera = self.source.camera
+        self.extractor = create_extractor(c.features, num_features=c.num_features)
+        self.tracker = Tracker(_seeded(c.tracker, c.seed))
+        self.selector = KeyframeSelector(c.keyframes)
+        self.mapper = Mapper(c.mapper)
+        self.bundle_adjuster = BundleAdjuster(c.ba)
+        self.initializer = Initializer(self.camera, _seeded(c.initializer, c.seed))
+        self.indices = np.arange(0, len(self.source), c.frame_skip)[: c.max_frames]
+        self.records: list[FrameRecord] = []
+        self.segments: list[Segment] = []
+        self.segment: Segment | None = None
+        self.local_map: LocalMap | None = None
+        self.last_keyframe: int = -1
+        self._points_at_last_keyframe = 0
+        self._consecutive_lost = 0
+        self._cursor = 0
+        self.timings: dict[str, float] = {}
+        self.wall_time = 0.0
+        self.last_frame: Frame | None = None
+        self.last_features: FrameFeatures | None = None
+        self.last_result: StepResult | None = None
+        self.finished = False
+
+    @property
+    def done(self) -> bool:
+        return self._cursor >= len(self.indices)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __iter__(self) -> Iterator[StepResult]:
+        while not self.done:
+            yield self.step()
+
+    def run(self, max_steps: int | None = None) -> list[StepResult]:
+        """Step until the end (or ``max_steps``) and finish; returns the step results."""
+        out = []
+        while not self.done and (max_steps is None or len(out) < max_steps):
+            out.append(self.step())
+        if self.done:
+            self.finish()
+        return out
+
+    # ----------------------------------------------------------------- one frame
+    def step(self) -> StepResult:
+        """Process the next frame and return what happened to it."""
+        if self.done:
+            raise StopIteration("no frames left")
+        t_start = time.perf_counter()
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        frame = self.source[int(self.indices[self._cursor])]
+        frame = _reindexed(frame, self._cursor)
+        timings["read"] = time.perf_counter() - t
+        self._cursor += 1
+        t = time.perf_counter()
+        ff = self._frame_features(frame)
+        timings["features"] = time.perf_counter() - t
+        self.last_frame, self.last_features = frame, ff
+        record = FrameRecord(frame.index, frame.frame_id, frame.timestamp, LOST)
+        self.records.append(record)
+        if self.segment is None:
+            result = self._initialize(ff, record, timings)
+        else:
+            result = self._track(ff, record, timings)
+        self.wall_time += time.perf_counter() - t_start
+        for k, v in timings.items():
+            self.timings[k] = self.timings.get(k, 0.0) + v
+        self.last_result = result
+        for cb in self.callbacks:
+            cb(self, result)
+        return result
+
+    def _frame_features(self, frame: Frame) -> FrameFeatures:
+        feats = self.extractor.extract(frame.gray)
+        kp = self.camera.undistort_points(feats.keypoints)
+        h, w = frame.gray.shape
+        ij = np.clip(np.round(feats.keypoints).astype(np.int64), 0, [w - 1, h - 1])
+        colors = frame.color[ij[:, 1], ij[:, 0]]
+        return FrameFeatures(frame.index, frame.frame_id, frame.timestamp, feats, kp, colors)
+
+    def _thumbnail(self, frame_index: int) -> np.ndarray | None:
+        if self.config.thumbnail_width <= 0 or self.last_frame is None or self.last_frame.index != frame_index:
+            return None
+        import cv2
+
+        img = self.last_frame.color
+        scale = self.config.thumbnail_width / img.shape[1]
+        return cv2.resize(img, (self.config.thumbnail_width, max(1, int(img.shape[0] * scale))),
+                          interpolation=cv2.INTER_AREA)
+
+    # ----------------------------------------------------------------- initialization
+    def _initialize(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
+        t = time.perf_counter()
+        if len(ff) < 8:
+            record.status = SKIPPED
+            timings["initialize"] = time.perf_counter() - t
+            return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
+        res = self.initializer.step(ff)
+        timings["initialize"] = time.perf_counter() - t
+        if not res.initialized:
+            record.status = INITIALIZING
+            return self._result(record, INITIALIZING, res.reason, timings)
+        # a new segment with the two initial keyframes; pose the rest of the window by tracking
+        seg = Segment(len(self.segments), res.slam_map)
+        self.segments.append(seg)
+        self.segment = seg
+        by_index = {f.index: f for f in res.frames}
+        for image_id, kf in sorted(res.slam_map.keyframes.items()):
+            rec = self.records[kf.frame_index]
+            self._set_pose(rec, image_id, np.eye(4), TRACKED)
+            rec.keyframe_image_id = image_id
+        self.last_keyframe = max(res.slam_map.keyframes)
+        self._points_at_last_keyframe = res.slam_map.reconstruction.image(self.last_keyframe).num_points3D
+        self.local_map = LocalMap.build(res.slam_map, self.last_keyframe, self.config.tracker.local_keyframes)
+        t = time.perf_counter()
+        posed = [res.first, res.second]
+        for f in res.frames:
+            if f.index in (res.first, res.second):
+                continue
+            tr = self.tracker.step(f, self.local_map, res.slam_map.pycolmap_camera, None)
+            rec = self.records[f.index]
+            if tr.tracked:
+                self._set_pose(rec, self.last_keyframe, tr.cam_from_world, TRACKED, absolute=True)
+                posed.append(f.index)
+            else:
+                rec.status = LOST
+        timings["track"] = time.perf_counter() - t
+        record.status = record.status if record.rel_pose is not None else LOST
+        self._consecutive_lost = 0
+        return self._result(record, INITIALIZED, res.reason, timings, posed_frames=tuple(sorted(posed)),
+                            is_keyframe=record.keyframe_image_id > 0)
+
+    # ----------------------------------------------------------------- tracking
+    def _track(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
+        seg = self.segment
+        slam_map = seg.slam_map
+        t = time.perf_counter()
+        if len(ff) < self.config.tracker.min_inliers:
+            record.status = SKIPPED
+            timings["track"] = time.perf_counter() - t
+            return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
+        tr = self.tracker.step(ff, self.local_map, slam_map.pycolmap_camera, self._predict())
+        timings["track"] = time.perf_counter() - t
+        if not tr.tracked:
+            record.status = LOST
+            self._consecutive_lost += 1
+            msg = tr.reason
+            if self._consecutive_lost >= self.config.max_lost_frames or len(self.local_map) == 0:
+                self._end_segment()
+                msg += f"; {self._consecutive_lost} frames lost: starting a new map segment"
+            return self._result(record, LOST, msg, timings, matches=0, inliers=tr.num_inliers)
+        self._consecutive_lost = 0
+        self._set_pose(record, self.last_keyframe, tr.cam_from_world, TRACKED, absolute=True)
+        t = time.perf_counter()
+        flow = flow_score(tr.ref_xy, tr.cur_xy, self.camera.fx, self.camera.fy)
+        decision = self.selector.step(flow, tr.ref_matches, tr.num_inliers, self._points_at_last_keyframe)
+        timings["keyframe"] = time.perf_counter() - t
+        ba_kind = ""
+        message = tr.reason
+        is_kf = False
+        if decision.is_keyframe:
+            ff = FrameFeatures(ff.index, ff.frame_id, ff.timestamp, ff.features, ff.keypoints, ff.colors,
+                               self._thumbnail(ff.index))
+            t = time.perf_counter()
+            mres = self.mapper.step(slam_map, ff, tr.cam_from_world, tr.point2D_idxs, tr.point3D_ids,
+                                    self.last_keyframe)
+            timings["map"] = time.perf_counter() - t
+            message = mres.reason
+            if mres.registered:
+                is_kf = True
+                t = time.perf_counter()
+                bres = self.bundle_adjuster.step(slam_map, mres.image_id)
+                timings["ba"] = time.perf_counter() - t
+                ba_kind = bres.kind
+                if bres.normalization is not None:
+                    self._apply_normalization(seg, float(bres.normalization.scale))
+                self.last_keyframe = mres.image_id
+                record.keyframe_image_id = mres.image_id
+                self._set_pose(record, mres.image_id, np.eye(4), TRACKED)
+                self._points_at_last_keyframe = slam_map.reconstruction.image(mres.image_id).num_points3D
+                t = time.perf_counter()
+                self.local_map = LocalMap.build(slam_map, self.last_keyframe, self.config.tracker.local_keyframes)
+                timings["local_map"] = time.perf_counter() - t
+            else:
+                decision = KeyframeDecision(False, f"keyframe rejected: {mres.reason}", flow, tr.ref_matches)
+        return self._result(record, TRACKED, message, timings, decision=decision, matches=tr.ref_matches,
+                            inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind)
+
+    def _predict(self) -> np.ndarray | None:
+        """Constant-velocity prediction from the last two posed frames of the current segment."""
+        posed = []
+        for rec in reversed(self.records[:-1]):
+            if rec.status == LOST and rec.segment != self.segment.id:
+                break
+            if rec.rel_pose is not None and rec.segment == self.segment.id:
+                posed.append(rec)
+                if len(posed) == 2:
+                    break
+            if len(self.records) - rec.index > 5:
+                break
+        if not posed:
+            return None
+        last = self.pose_of(posed[0])
+        if len(posed) == 1:
+            return last
+        prev = self.pose_of(posed[1])
+        steps = max(posed[0].index - posed[1].index, 1)
+        velocity = last @ np.linalg.inv(prev)
+        if steps > 1:  # velocity per frame is not simply divisible; use it once per gap
+            return last
+        return velocity @ last
+
+    def _set_pose(self, rec: FrameRecord, ref_image_id: int, pose: np.ndarray, status: str,
+                  absolute: bool = False) -> None:
+        slam_map = self.segment.slam_map
+        if absolute:
+            ref = np.eye(4)
+            ref[:3] = slam_map.cam_from_world(ref_image_id).matrix()
+            pose = pose @ np.linalg.inv(ref)
+        rec.ref_image_id = ref_image_id
+        rec.rel_pose = pose
+        rec.segment = self.segment.id
+        rec.status = status
+        if not self.segment.frames or self.segment.frames[-1] != rec.index:
+            self.segment.frames.append(rec.index)
+
+    def _apply_normalization(self, seg: Segment, scale: float) -> None:
+        for i in seg.frames:
+            rel = self.records[i].rel_pose
+            if rel is not None:
+                rel[:3, 3] *= scale
+
+    def _end_segment(self) -> None:
+        self.segment = None
+        self.local_map = None
+        self.last_keyframe = -1
+        self._consecutive_lost = 0
+        self.initializer.reset()
+
+    def finish(self) -> None:
+        """End of the run: a last global BA of every segment (when configured)."""
+        if self.finished:
+            return
+        self.finished = True
+        if self.config.ba.final_global:
+            t = time.perf_counter()
+            for seg in self.segments:
+                if seg.slam_map.num_keyframes >= 3:
+                    bres = self.bundle_adjuster.adjust_global(seg.slam_map)
+                    if bres.normalization is not None:
+                        self._apply_normalization(seg, float(bres.normalization.scale))
+            dt = time.perf_counter() - t
+            self.timings["ba"] = self.timings.get("ba", 0.0) + dt
+            self.wall_time += dt
+
+    def _result(self, rec: FrameRecord, status: str, message: str, timings: dict,
+                decision: KeyframeDecision | None = None, **kw) -> StepResult:
+        slam_map = self.segment.slam_map if self.segment is not None else None
+        return StepResult(
+            frame_index=rec.index, frame_id=rec.frame_id, timestamp=rec.timestamp, status=status,
+            message=message, segment=self.segment.id if self.segment is not None else -1,
+            keyframe_reason=decision.reason if decision is not None else "",
+            cam_from_world=self.pose_of(rec),
+            num_keyframes=slam_map.num_keyframes if slam_map else 0,
+            num_points=slam_map.num_points if slam_map else 0, timings=dict(timings), **kw)
+
+    # ----------------------------------------------------------------- state queries
+    def pose_of(self, rec: FrameRecord | int) -> np.ndarray | None:
+        """(4, 4) cam_from_world of a frame (record or index) in its segment's map, or None."""
+        if isinstance(rec, (int, np.integer)):
+            rec = self.records[int(rec)]
+        if rec.rel_pose is None:
+            return None
+        slam_map = self.segments[rec.segment].slam_map
+        ref = np.eye(4)
+        ref[:3] = slam_map.reconstruction.frame(rec.ref_image_id).rig_from_world.matrix()
+        return rec.rel_pose @ ref
+
+    @property
+    def slam_map(self) -> SlamMap | None:
+        """The map of the current segment (or of the largest one once tracking ended)."""
+        if self.segment is not None:
+            return self.segment.slam_map
+        main = self.main_segment
+        return main.slam_map if main is not None else None
+
+    @property
+    def main_segment(self) -> Segment | None:
+        """The segment with the most posed frames."""
+        if not self.segments:
+            return None
+        return max(self.segments, key=lambda s: (len(s.frames), -s.id))
+
+    def trajectory(self, keyframes_only: bool = False, segment: int | None = None) -> Trajectory:
+        """Camera-to-world poses of the posed frames of a segment (default: the main one), source timestamps."""
+        seg = self.main_segment if segment is None else self.segments[segment]
+        if seg is None:
+            return Trajectory(np.empty(0), np.empty((0, 4, 4)))
+        ts, poses = [], []
+        for i in seg.frames:
+            rec = self.records[i]
+            if rec.segment != seg.id or rec.rel_pose is None:
+                continue
+            if keyframes_only and rec.keyframe_image_id < 0:
+                continue
+            ts.append(rec.timestamp)
+            poses.append(np.linalg.inv(self.pose_of(rec)))
+        return Trajectory(np.array(ts), np.array(poses).reshape(-1, 4, 4))
+
+    def summary(self) -> dict:
+        """The numbers of the seed's Table 2 and more, JSON-serialisable."""
+        n = len(self.records)
+        posed = sum(r.rel_pose is not None for r in self.records)
+        lost = sum(r.status == LOST for r in self.records)
+        main = self.main_segment
+        slam_map = main.slam_map if main else None
+        init_s = self.timings.get("initialize", 0.0)
+        n_kf = slam_map.num_keyframes if slam_map else 0
+        return {
+            "source": getattr(self.source, "name", str(self.source)),
+            "frames": n,
+            "frames_total": int(len(self.indices)),
+            "frames_posed": int(posed),
+            "frames_lost": int(lost),
+            "frames_skipped": int(sum(r.status == SKIPPED for r in self.records)),
+            "fraction_posed": posed / n if n else 0.0,
+            "keyframes": n_kf,
+            "points3D": slam_map.num_points if slam_map else 0,
+            "points_per_image": slam_map.points_per_image() if slam_map else 0.0,
+            "mean_reprojection_error_px": slam_map.mean_reprojection_error() if slam_map else 0.0,
+            "segments": [{"id": s.id, "frames": len(s.frames), "first_frame": s.frames[0] if s.frames else None,
+                          "last_frame": s.frames[-1] if s.frames else None,
+                          "keyframes": s.slam_map.num_keyframes, "points3D": s.slam_map.num_points}
+                         for s in self.segments],
+            "main_segment": main.id if main else None,
+            "wall_time_s": self.wall_time,
+            "fps": n / self.wall_time if self.wall_time > 0 else 0.0,
+            "initialization_s": init_s,
+            "seconds_per_frame": self.wall_time / n if n else 0.0,
+            "seconds_per_keyframe": self.wall_time / n_kf if n_kf else 0.0,
+            "timings_s": dict(self.timings),
+            "config": self.config.to_dict(),
+        }
+
+    def save(self, out_dir: str | Path) -> Path:
+        """Write trajectories, COLMAP model, PLY and summary to ``out_dir`` (see :func:`slamkit.io.save_run`)."""
+        from .io.run import save_run
+
+        return save_run(self, out_dir)
+
+
+def _seeded(stage_config, seed: int):
+    from dataclasses import replace
+
+    return replace(stage_config, random_seed=seed)
+
+
+def _reindexed(frame: Frame, index: int) -> Frame:
+    if frame.index == index:
+        return frame
+    from dataclasses import replace
+
+    return replace(frame, index=index)

@@ -1,0 +1,160 @@
+"""Bundle adjustment, track maintenance and filtering (seed §3.6, COLMAP's iterative refinement).
+
+After each keyframe: local BA over the new keyframe and its most covisible keyframes (points they observe
+are variable; other keyframes observing those points are constant), or global BA when the map has grown
+by ``global_growth`` since the last one. Then merge and complete the modified tracks, filter points with
+large reprojection error or too small triangulation angle, and (after global BA) normalize the map.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import pycolmap
+
+from ..errors import ConfigError
+from ..map import CAMERA_ID, SlamMap
+
+_LOSSES = {"trivial": "TRIVIAL", "soft_l1": "SOFT_L1", "cauchy": "CAUCHY", "huber": "HUBER"}
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentConfig:
+    local_window: int = 6
+    """Keyframes adjusted with the new one: its most covisible keyframes."""
+    local_iterations: int = 20
+    global_growth: float = 0.25
+    """Global BA when the number of keyframes has grown by this fraction since the last global BA."""
+    global_min_keyframes: int = 8
+    """No periodic global BA before the map has this many keyframes (early maps are ill-conditioned)."""
+    global_max_keyframes: int = 250
+    """No periodic global BA beyond this many keyframes (keeps per-frame time flat); see ``final_global``."""
+    global_iterations: int = 50
+    final_global: bool = True
+    """Global BA once more when the run ends (in ``Slam.finish``)."""
+    max_reproj_error_px: float = 4.0
+    """Points with a larger reprojection error are filtered after BA."""
+    min_tri_angle_deg: float = 1.5
+    """Points with a smaller triangulation angle are filtered after BA."""
+    loss: str = "soft_l1"
+    """Robust loss: trivial, soft_l1, cauchy or huber (scale 1 px)."""
+    normalize: bool = True
+    """Normalize the map (COLMAP ``Reconstruction.normalize``) after global BA."""
+    refine_intrinsics: bool = False
+    """Intrinsics are fixed (calibrated cameras) unless this is set."""
+    num_threads: int = 1
+    """Ceres threads (1 keeps runs bit-identical)."""
+
+    def validate(self) -> None:
+        if self.local_window < 1:
+            raise ConfigError(f"ba.local_window must be >= 1 (got {self.local_window})")
+        if self.global_growth <= 0:
+            raise ConfigError(f"ba.global_growth must be > 0 (got {self.global_growth})")
+        if self.max_reproj_error_px <= 0:
+            raise ConfigError(f"ba.max_reproj_error_px must be > 0 (got {self.max_reproj_error_px})")
+        if self.loss not in _LOSSES:
+            raise ConfigError(f"ba.loss must be one of {sorted(_LOSSES)} (got {self.loss!r})")
+
+
+@dataclass(frozen=True)
+class BundleAdjustmentResult:
+    kind: str
+    """"local" or "global"."""
+    num_images: int
+    num_points: int
+    termination: str
+    merged: int
+    completed: int
+    filtered: int
+    seconds: float
+    normalization: pycolmap.Sim3d | None
+    """The similarity applied by normalization (new_from_old world), or None."""
+
+
+class BundleAdjuster:
+    """Local / global bundle adjustment of a :class:`SlamMap`, then track maintenance and filtering."""
+
+    def __init__(self, config: BundleAdjustmentConfig = BundleAdjustmentConfig()):
+        config.validate()
+        self.config = config
+        self._keyframes_at_last_global = 0
+
+    def _options(self, iterations: int) -> pycolmap.BundleAdjustmentOptions:
+        o = pycolmap.BundleAdjustmentOptions()
+        o.print_summary = False
+        o.refine_focal_length = self.config.refine_intrinsics
+        o.refine_principal_point = False
+        o.refine_extra_params = False
+        o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, _LOSSES[self.config.loss])
+        o.ceres.loss_function_scale = 1.0
+        o.ceres.solver_options.max_num_iterations = iterations
+        o.ceres.solver_options.num_threads = self.config.num_threads
+        return o
+
+    def global_due(self, slam_map: SlamMap) -> bool:
+        n = slam_map.num_keyframes
+        c = self.config
+        return (c.global_min_keyframes <= n <= c.global_max_keyframes
+                and n >= (1 + c.global_growth) * max(self._keyframes_at_last_global, 1))
+
+    def step(self, slam_map: SlamMap, image_id: int) -> BundleAdjustmentResult:
+        """Adjust after keyframe ``image_id`` was inserted: global when due, else local."""
+        if self.global_due(slam_map):
+            return self.adjust_global(slam_map)
+        return self.adjust_local(slam_map, image_id)
+
+    def adjust_local(self, slam_map: SlamMap, image_id: int) -> BundleAdjustmentResult:
+        t0 = time.perf_counter()
+        window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
+        cfg = pycolmap.BundleAdjustmentConfig()
+        points: set[int] = set()
+        for i in window:
+            cfg.add_image(i)
+            points.update(int(p) for p in slam_map.point3D_ids(i) if p >= 0)
+        for p in points:
+            cfg.add_variable_point(p)
+        if not self.config.refine_intrinsics:
+            cfg.set_constant_cam_intrinsics(CAMERA_ID)
+        if len(window) >= slam_map.num_keyframes:  # nothing outside the window holds the gauge
+            cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+        summary = pycolmap.create_default_bundle_adjuster(
+            self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
+        merged, completed, filtered = self._maintain(slam_map, set(window))
+        return BundleAdjustmentResult("local", len(window), len(points), str(summary.termination_type).split(".")[-1],
+                                      merged, completed, filtered, time.perf_counter() - t0, None)
+
+    def adjust_global(self, slam_map: SlamMap, normalize: bool | None = None) -> BundleAdjustmentResult:
+        t0 = time.perf_counter()
+        rec = slam_map.reconstruction
+        cfg = pycolmap.BundleAdjustmentConfig()
+        for i in slam_map.keyframes:
+            cfg.add_image(i)
+        if not self.config.refine_intrinsics:
+            cfg.set_constant_cam_intrinsics(CAMERA_ID)
+        cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+        summary = pycolmap.create_default_bundle_adjuster(
+            self._options(self.config.global_iterations), cfg, rec).solve()
+        merged, completed, filtered = self._maintain(slam_map, None)
+        self._keyframes_at_last_global = slam_map.num_keyframes
+        sim = None
+        if self.config.normalize if normalize is None else normalize:
+            sim = rec.normalize()
+        return BundleAdjustmentResult("global", slam_map.num_keyframes, rec.num_points3D(),
+                                      str(summary.termination_type).split(".")[-1], merged, completed, filtered,
+                                      time.perf_counter() - t0, sim)
+
+    def _maintain(self, slam_map: SlamMap, image_ids: set[int] | None) -> tuple[int, int, int]:
+        """Complete and merge modified tracks, then filter (COLMAP's IterativeLocalRefinement order)."""
+        tri, opts = slam_map.triangulator, slam_map.triangulation
+        modified = tri.get_modified_points3D()
+        completed = tri.complete_tracks(opts, modified) if modified else 0
+        merged = tri.merge_tracks(opts, modified) if modified else 0
+        tri.clear_modified_points3D()
+        obs = slam_map.observations
+        if image_ids is None:
+            filtered = obs.filter_all_points3D(self.config.max_reproj_error_px, self.config.min_tri_angle_deg)
+        else:
+            filtered = obs.filter_points3D_in_images(self.config.max_reproj_error_px,
+                                                     self.config.min_tri_angle_deg, image_ids)
+        return merged, completed, filtered

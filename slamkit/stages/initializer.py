@@ -1,0 +1,219 @@
+"""Map initialization from the first frames (seed §3.3, and the seed-2 strategy as an option).
+
+``best_pair`` (default): buffer ``init_frames`` frames and match them exhaustively; the first image is the
+one with the most correspondences, the second the image with the most correspondences to it whose
+two-view geometry (``pycolmap.estimate_calibrated_two_view_geometry``) has enough inliers and a large
+enough triangulation angle. Register the pair, triangulate, run global BA and filter; if too few map
+points remain, try the next candidate; after the window, slide it and report the failure.
+
+``first_inliers``: the first buffered frame with the first later frame whose essential matrix explains at
+least ``min_inlier_ratio`` of the matches (with enough parallax).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pycolmap
+
+from ..camera import Intrinsics
+from ..errors import ConfigError
+from ..features import FrameFeatures, MatchingConfig, match_descriptors
+from ..map import SlamMap, pycolmap_camera
+from .flow import flow_score
+
+STRATEGIES = ("best_pair", "first_inliers")
+
+
+@dataclass(frozen=True)
+class InitializerConfig:
+    strategy: str = "best_pair"
+    """"best_pair" (seed §3.3) or "first_inliers" (seed 2: first frame + first frame with >= 90 % E inliers)."""
+    init_frames: int = 20
+    """Size of the initialization window N (frames)."""
+    min_matches: int = 100
+    """Inlier matches a pair needs."""
+    min_tri_angle_deg: float = 2.0
+    """Median triangulation angle a pair needs, degrees."""
+    min_inlier_ratio: float = 0.9
+    """first_inliers: essential-matrix inliers / matches a pair needs."""
+    min_points: int = 80
+    """Map points the initial map needs after BA and filtering."""
+    max_pair_trials: int = 6
+    """Candidate second images tried per window."""
+    max_error_px: float = 2.0
+    """RANSAC threshold of the two-view geometry, pixels."""
+    max_reproj_error_px: float = 4.0
+    min_track_angle_deg: float = 1.5
+    matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(mutual=False))
+    """Exhaustive window matching: ratio test only (a mutual check would double the cost)."""
+    random_seed: int = 0
+
+    def validate(self) -> None:
+        if self.strategy not in STRATEGIES:
+            raise ConfigError(f"initializer.strategy must be one of {STRATEGIES} (got {self.strategy!r})")
+        if self.init_frames < 2:
+            raise ConfigError(f"initializer.init_frames must be >= 2 (got {self.init_frames})")
+        if self.min_matches < 8:
+            raise ConfigError(f"initializer.min_matches must be >= 8 (got {self.min_matches})")
+        if not 0 < self.min_inlier_ratio <= 1:
+            raise ConfigError(f"initializer.min_inlier_ratio must be in (0, 1] (got {self.min_inlier_ratio})")
+        if self.min_tri_angle_deg < 0:
+            raise ConfigError(f"initializer.min_tri_angle_deg must be >= 0 (got {self.min_tri_angle_deg})")
+
+
+@dataclass(frozen=True, eq=False)
+class InitResult:
+    """status: "collecting", "initialized" or "failed". On success ``slam_map`` holds the two keyframes
+    (image ids 1 and 2 for frames ``first`` and ``second``) and ``frames`` the buffered window."""
+
+    status: str
+    reason: str
+    slam_map: SlamMap | None = None
+    first: int | None = None
+    second: int | None = None
+    tri_angle_deg: float = 0.0
+    num_points: int = 0
+    frames: tuple[FrameFeatures, ...] = ()
+
+    @property
+    def initialized(self) -> bool:
+        return self.status == "initialized"
+
+
+class Initializer:
+    """Buffers frames until an initial map can be built from a pair of them."""
+
+    def __init__(self, camera: Intrinsics, config: InitializerConfig = InitializerConfig()):
+        config.validate()
+        self.config = config
+        self.camera = camera.pinhole
+        self._pycamera = pycolmap_camera(self.camera)
+        self.frames: list[FrameFeatures] = []
+        self._matches: dict[tuple[int, int], np.ndarray] = {}
+        opts = pycolmap.TwoViewGeometryOptions()
+        opts.compute_relative_pose = True
+        opts.ransac.max_error = config.max_error_px
+        opts.ransac.random_seed = config.random_seed
+        opts.min_num_inliers = config.min_matches
+        self._tvg_options = opts
+
+    def reset(self) -> None:
+        self.frames.clear()
+        self._matches.clear()
+
+    def _match(self, a: FrameFeatures, b: FrameFeatures) -> np.ndarray:
+        key = (a.index, b.index)
+        if key not in self._matches:
+            self._matches[key] = match_descriptors(a.features.descriptors, b.features.descriptors,
+                                                   a.features.binary, self.config.matching)
+        return self._matches[key]
+
+    def step(self, frame: FrameFeatures) -> InitResult:
+        c = self.config
+        self.frames.append(frame)
+        for other in self.frames[:-1]:  # match exhaustively as frames arrive
+            if c.strategy == "best_pair" or other is self.frames[0]:
+                self._match(other, frame)
+        if c.strategy == "first_inliers":
+            result = self._try_first_inliers()
+        elif len(self.frames) < c.init_frames:
+            return InitResult("collecting", f"buffered {len(self.frames)}/{c.init_frames} frames")
+        else:
+            result = self._try_best_pair()
+        if result.initialized:
+            result = InitResult(**{**result.__dict__, "frames": tuple(self.frames)})
+            self.reset()
+            return result
+        if len(self.frames) >= c.init_frames:  # slide the window
+            drop = max(1, len(self.frames) // 2) if c.strategy == "best_pair" else 1
+            gone = {f.index for f in self.frames[:drop]}
+            self.frames = self.frames[drop:]
+            self._matches = {k: v for k, v in self._matches.items() if k[0] not in gone and k[1] not in gone}
+            return InitResult("failed", f"{result.reason}; window slides by {drop} frames")
+        return InitResult("collecting", f"{result.reason}; buffered {len(self.frames)}/{c.init_frames} frames")
+
+    # ------------------------------------------------------------------ strategies
+    def _try_best_pair(self) -> InitResult:
+        frames = self.frames
+        n = len(frames)
+        counts = np.zeros((n, n), np.int64)
+        for i in range(n):
+            for j in range(i + 1, n):
+                counts[i, j] = counts[j, i] = len(self._matches[(frames[i].index, frames[j].index)])
+        first = int(np.argmax(counts.sum(axis=1)))
+        # candidates with enough correspondences, the most apparent motion (flow) first
+        flows = {}
+        for j in range(n):
+            if j != first and counts[first, j] >= self.config.min_matches:
+                a, b = (first, j) if first < j else (j, first)
+                m = self._matches[(frames[a].index, frames[b].index)]
+                flows[j] = flow_score(frames[a].keypoints[m[:, 0]], frames[b].keypoints[m[:, 1]],
+                                      self.camera.fx, self.camera.fy)
+        order = sorted(flows, key=lambda j: (-flows[j], j))
+        reasons = []
+        for j in order[: self.config.max_pair_trials]:
+            a, b = (first, int(j)) if first < j else (int(j), first)
+            res = self._try_pair(frames[a], frames[b])
+            if res.initialized:
+                return res
+            reasons.append(f"{frames[a].index}-{frames[b].index}: {res.reason}")
+        why = "; ".join(reasons[:3]) or "no matches in the window"
+        return InitResult("failed", f"no initial pair in frames {frames[0].index}-{frames[-1].index} ({why})")
+
+    def _try_first_inliers(self) -> InitResult:
+        if len(self.frames) < 2:
+            return InitResult("collecting", "waiting for a second frame")
+        return self._try_pair(self.frames[0], self.frames[-1], need_ratio=self.config.min_inlier_ratio)
+
+    def _try_pair(self, fa: FrameFeatures, fb: FrameFeatures, need_ratio: float = 0.0) -> InitResult:
+        c = self.config
+        matches = self._match(fa, fb)
+        if len(matches) < c.min_matches:
+            return InitResult("failed", f"{len(matches)} matches < {c.min_matches}")
+        tvg = pycolmap.estimate_calibrated_two_view_geometry(
+            self._pycamera, fa.keypoints, self._pycamera, fb.keypoints,
+            np.ascontiguousarray(matches, np.uint32), self._tvg_options)
+        inl = np.asarray(tvg.inlier_matches)
+        if tvg.cam2_from_cam1 is None or len(inl) < c.min_matches:
+            return InitResult("failed", f"{len(inl)} two-view inliers < {c.min_matches}")
+        ratio = len(inl) / len(matches)
+        if ratio < need_ratio:
+            return InitResult("failed", f"inlier ratio {ratio:.2f} < {need_ratio:g}")
+        angle = math.degrees(tvg.tri_angle)
+        if angle < c.min_tri_angle_deg:
+            return InitResult("failed", f"triangulation angle {angle:.2f} deg < {c.min_tri_angle_deg:g}")
+        slam_map = SlamMap(self.camera)
+        ia = slam_map.add_image(fa.index, fa.timestamp, fa.keypoints, fa.features, fa.colors, fa.thumbnail)
+        ib = slam_map.add_image(fb.index, fb.timestamp, fb.keypoints, fb.features, fb.colors, fb.thumbnail)
+        slam_map.add_matches(ia, ib, inl)
+        slam_map.observe(ia, ib)
+        slam_map.register(ia, pycolmap.Rigid3d())
+        slam_map.register(ib, tvg.cam2_from_cam1)
+        slam_map.triangulate(ib)
+        slam_map.color_new_points(ia)
+        self._global_ba(slam_map)
+        slam_map.observations.filter_all_points3D(c.max_reproj_error_px, c.min_track_angle_deg)
+        n_points = slam_map.num_points
+        if n_points < c.min_points:
+            return InitResult("failed", f"{n_points} map points after BA < {c.min_points}")
+        return InitResult("initialized", f"frames {fa.index} and {fb.index}: {len(inl)} inliers, "
+                                         f"triangulation angle {angle:.1f} deg, {n_points} points",
+                          slam_map, fa.index, fb.index, angle, n_points)
+
+    @staticmethod
+    def _global_ba(slam_map: SlamMap) -> None:
+        opts = pycolmap.BundleAdjustmentOptions()
+        opts.print_summary = False
+        opts.refine_focal_length = False
+        opts.refine_principal_point = False
+        opts.refine_extra_params = False
+        opts.ceres.solver_options.num_threads = 1
+        cfg = pycolmap.BundleAdjustmentConfig()
+        for i in slam_map.keyframes:
+            cfg.add_image(i)
+        cfg.set_constant_cam_intrinsics(1)
+        cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+        pycolmap.create_default_bundle_adjuster(opts, cfg, slam_map.reconstruction).solve()

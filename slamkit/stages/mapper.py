@@ -1,0 +1,141 @@
+"""Mapping a new keyframe with COLMAP's machinery (seed §3.5).
+
+Register the keyframe in the Reconstruction with its tracked pose, add its correspondences to the last
+keyframe and its covisible keyframes to the CorrespondenceGraph, add the tracked 2D-3D observations, and
+triangulate (``IncrementalTriangulator.triangulate_image``: continue tracks and create new points). A
+keyframe that then sees fewer than ``min_keyframe_points`` map points is deregistered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..features import FrameFeatures, MatchingConfig, match_descriptors
+from ..map import SlamMap, rigid_from_matrix
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    neighbors: int = 4
+    """The new keyframe is matched with the last keyframe and up to ``neighbors - 1`` covisible ones."""
+    max_epipolar_error_px: float = 2.0
+    """Matches to neighbours must satisfy the epipolar constraint of the known poses (Sampson, pixels)."""
+    min_keyframe_points: int = 50
+    """A keyframe seeing fewer map points after triangulation is deregistered (seed §3.5)."""
+    matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.8, mutual=True))
+
+    def validate(self) -> None:
+        if self.neighbors < 1:
+            raise ConfigError(f"mapper.neighbors must be >= 1 (got {self.neighbors})")
+        if self.max_epipolar_error_px <= 0:
+            raise ConfigError(f"mapper.max_epipolar_error_px must be > 0 (got {self.max_epipolar_error_px})")
+        if self.min_keyframe_points < 0:
+            raise ConfigError(f"mapper.min_keyframe_points must be >= 0 (got {self.min_keyframe_points})")
+
+
+@dataclass(frozen=True)
+class MappingResult:
+    status: str
+    """"registered" or "rejected"."""
+    reason: str
+    image_id: int
+    num_points: int
+    """Map points the keyframe observes."""
+    new_points: int
+    """Observations added by triangulation (new and continued tracks)."""
+    neighbors: tuple[int, ...]
+    num_correspondences: int
+
+    @property
+    def registered(self) -> bool:
+        return self.status == "registered"
+
+
+def sampson_error_px(x1: np.ndarray, x2: np.ndarray, cam2_from_cam1: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Sampson distance (pixels) of pixel matches x1 (N, 2) in camera 1 and x2 (N, 2) in camera 2."""
+    R, t = cam2_from_cam1[:3, :3], cam2_from_cam1[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    Kinv = np.linalg.inv(K)
+    F = Kinv.T @ (tx @ R) @ Kinv
+    h1 = np.c_[x1, np.ones(len(x1))]
+    h2 = np.c_[x2, np.ones(len(x2))]
+    Fx1 = h1 @ F.T
+    Ftx2 = h2 @ F
+    num = np.einsum("ij,ij->i", h2, Fx1) ** 2
+    den = Fx1[:, 0] ** 2 + Fx1[:, 1] ** 2 + Ftx2[:, 0] ** 2 + Ftx2[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, 1e-300))
+
+
+class Mapper:
+    """Inserts keyframes into a :class:`SlamMap`."""
+
+    def __init__(self, config: MapperConfig = MapperConfig()):
+        config.validate()
+        self.config = config
+
+    def step(self, slam_map: SlamMap, frame: FrameFeatures, cam_from_world: np.ndarray, point2D_idxs: np.ndarray,
+             point3D_ids: np.ndarray, ref_image_id: int) -> MappingResult:
+        """Insert ``frame`` as a keyframe at pose ``cam_from_world`` (4, 4) with its tracked 2D-3D inliers."""
+        c = self.config
+        neighbors = [ref_image_id] + [i for i, _ in slam_map.covisible(ref_image_id, c.neighbors - 1)]
+        iid = slam_map.add_image(frame.index, frame.timestamp, frame.keypoints, frame.features, frame.colors,
+                                 frame.thumbnail)
+        K = slam_map.camera.K
+        tracked = np.zeros(len(frame), bool)
+        tracked[point2D_idxs] = True
+        total = 0
+        for n in neighbors:
+            pairs = self._correspondences(slam_map, n, frame, cam_from_world, point2D_idxs, point3D_ids, tracked, K)
+            slam_map.add_matches(n, iid, pairs)
+            total += len(pairs)
+        slam_map.register(iid, rigid_from_matrix(cam_from_world))
+        slam_map.add_observations(iid, point2D_idxs, point3D_ids)
+        new = slam_map.triangulate(iid)
+        n_points = slam_map.reconstruction.image(iid).num_points3D
+        if n_points < c.min_keyframe_points:
+            slam_map.deregister(iid)
+            return MappingResult("rejected", f"sees {n_points} map points < {c.min_keyframe_points}", iid,
+                                 n_points, new, tuple(neighbors), total)
+        return MappingResult("registered", f"{n_points} map points, {new} triangulated observations", iid,
+                             n_points, new, tuple(neighbors), total)
+
+    def _correspondences(self, slam_map: SlamMap, n: int, frame: FrameFeatures, cam_from_world: np.ndarray,
+                         point2D_idxs: np.ndarray, point3D_ids: np.ndarray, tracked: np.ndarray, K: np.ndarray
+                         ) -> np.ndarray:
+        """(M, 2) keypoint matches (index in keyframe n, index in the new frame), one-to-one.
+
+        Tracked observations of points that n sees come first; then descriptor matches between keypoints
+        without a map point on both sides, kept when they satisfy the epipolar geometry of the poses.
+        """
+        kf = slam_map.keyframes[n]
+        n_pids = slam_map.point3D_ids(n)
+        # tracked points seen by n
+        has = np.flatnonzero(n_pids >= 0)
+        o = np.argsort(n_pids[has])
+        sorted_pids, sorted_kp = n_pids[has][o], has[o]
+        pos = np.minimum(np.searchsorted(sorted_pids, point3D_ids), max(len(sorted_pids) - 1, 0))
+        seen = (sorted_pids[pos] == point3D_ids) if len(sorted_pids) else np.zeros(len(point3D_ids), bool)
+        track_pairs = np.stack([sorted_kp[pos[seen]], point2D_idxs[seen]], axis=1) if seen.any() else \
+            np.empty((0, 2), np.int64)
+        # new correspondences between unmapped keypoints
+        free_n = np.flatnonzero(n_pids < 0)
+        free_c = np.flatnonzero(~tracked)
+        pairs = match_descriptors(kf.features.descriptors[free_n], frame.features.descriptors[free_c],
+                                  kf.features.binary, self.config.matching)
+        new_pairs = np.stack([free_n[pairs[:, 0]], free_c[pairs[:, 1]]], axis=1) if len(pairs) else \
+            np.empty((0, 2), np.int64)
+        if len(new_pairs):
+            T_n = np.eye(4)
+            T_n[:3] = slam_map.cam_from_world(n).matrix()
+            cur_from_n = cam_from_world @ np.linalg.inv(T_n)
+            err = sampson_error_px(kf.keypoints[new_pairs[:, 0]], frame.keypoints[new_pairs[:, 1]], cur_from_n, K)
+            new_pairs = new_pairs[err < self.config.max_epipolar_error_px]
+        out = np.concatenate([track_pairs, new_pairs]).astype(np.int64)
+        # one-to-one on both sides, tracked pairs first
+        _, first_n = np.unique(out[:, 0], return_index=True)
+        out = out[np.sort(first_n)]
+        _, first_c = np.unique(out[:, 1], return_index=True)
+        return out[np.sort(first_c)]

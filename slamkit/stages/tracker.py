@@ -1,0 +1,224 @@
+"""Tracking of every frame against the local map: guided matching and absolute pose (ORB-SLAM's
+TrackWithMotionModel / TrackReferenceKeyFrame / TrackLocalMap, on pycolmap's estimators).
+
+1. With a predicted pose (constant-velocity model): project the local map points and match each to
+   keypoints within ``search_radius_px`` (SearchByProjection); else brute-force match the frame against
+   the local map descriptors.
+2. Robust absolute pose: ``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P + refinement).
+3. Track the local map: project again with the estimated pose, match within ``refine_radius_px`` and
+   refine the pose on all inliers (``pycolmap.refine_absolute_pose``, motion-only bundle adjustment).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pycolmap
+
+from ..errors import ConfigError
+from ..features import FrameFeatures, MatchingConfig, guided_match, match_descriptors
+from ..map import SlamMap, matrix_from_rigid, rigid_from_matrix
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    max_error_px: float = 4.0
+    """RANSAC and inlier threshold on reprojection error, pixels."""
+    min_inliers: int = 30
+    """Fewer pose inliers than this and the frame is lost."""
+    search_radius_px: float = 20.0
+    """Guided-matching radius around map points projected with the predicted pose, pixels."""
+    refine_radius_px: float = 6.0
+    """Guided-matching radius with the estimated pose (tracking the local map), pixels."""
+    local_keyframes: int = 10
+    """The local map: points of the last keyframe and of up to this many most covisible keyframes."""
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    random_seed: int = 0
+    """RANSAC seed (same input and seed give the same trajectory)."""
+
+    def validate(self) -> None:
+        if self.max_error_px <= 0:
+            raise ConfigError(f"tracker.max_error_px must be > 0 (got {self.max_error_px})")
+        if self.min_inliers < 4:
+            raise ConfigError(f"tracker.min_inliers must be >= 4 (got {self.min_inliers})")
+        if self.search_radius_px <= 0 or self.refine_radius_px <= 0:
+            raise ConfigError("tracker.search_radius_px and tracker.refine_radius_px must be > 0")
+
+
+@dataclass(eq=False)
+class LocalMap:
+    """Map points near the last keyframe, as arrays for vectorised matching.
+
+    ids: (M,) int64 point ids; xyz: (M, 3) world positions; descriptors: (M, D) from the most recent
+    keyframe observing each point; ref_ids / ref_xy: points observed by the reference (last) keyframe,
+    sorted by id, with their (undistorted) pixel positions there.
+    """
+
+    ids: np.ndarray
+    xyz: np.ndarray
+    descriptors: np.ndarray
+    binary: bool
+    ref_image_id: int
+    ref_ids: np.ndarray
+    ref_xy: np.ndarray
+    keyframe_ids: list[int]
+
+    @classmethod
+    def build(cls, slam_map: SlamMap, ref_image_id: int, num_covisible: int = 10) -> "LocalMap":
+        kf_ids = [ref_image_id] + [i for i, _ in slam_map.covisible(ref_image_id, num_covisible)]
+        all_ids, all_desc = [], []
+        ref_ids = ref_xy = None
+        for order, iid in enumerate(sorted(kf_ids, key=lambda i: (i != ref_image_id, -i))):
+            pids = slam_map.point3D_ids(iid)
+            has = pids >= 0
+            kf = slam_map.keyframes[iid]
+            all_ids.append(pids[has])
+            all_desc.append(kf.features.descriptors[has])
+            if iid == ref_image_id:
+                o = np.argsort(pids[has])
+                ref_ids, ref_xy = pids[has][o], kf.keypoints[has][o]
+        ids = np.concatenate(all_ids) if all_ids else np.empty(0, np.int64)
+        desc = np.concatenate(all_desc) if all_desc else np.empty((0, 32), np.uint8)
+        ids, first = np.unique(ids, return_index=True)  # first occurrence = most recent keyframe
+        binary = slam_map.keyframes[ref_image_id].features.binary
+        return cls(ids, slam_map.points_xyz(ids), desc[first], binary, ref_image_id, ref_ids, ref_xy, kf_ids)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def project(self, cam_from_world: np.ndarray, K: np.ndarray, size: tuple[int, int]
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Project into a camera: returns (indices of points in front and inside the image, (K, 2) pixels)."""
+        Xc = self.xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        z = Xc[:, 2]
+        front = z > 1e-6
+        uv = np.full((len(Xc), 2), -1.0)
+        uv[front] = Xc[front, :2] / z[front, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        w, h = size
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        idx = np.flatnonzero(inside)
+        return idx, uv[idx]
+
+
+@dataclass(frozen=True, eq=False)
+class TrackingResult:
+    """Outcome of tracking one frame.
+
+    status: "tracked" or "lost"; cam_from_world: (4, 4) pose or None; point2D_idxs / point3D_ids: (K,)
+    inlier correspondences; ref_matches: inliers whose point the last keyframe observes, with
+    ``ref_xy`` / ``cur_xy`` their pixels in both (for the flow score).
+    """
+
+    status: str
+    reason: str
+    cam_from_world: np.ndarray | None
+    method: str
+    num_matches: int
+    num_inliers: int
+    point2D_idxs: np.ndarray
+    point3D_ids: np.ndarray
+    ref_xy: np.ndarray
+    cur_xy: np.ndarray
+
+    @property
+    def tracked(self) -> bool:
+        return self.status == "tracked"
+
+    @property
+    def ref_matches(self) -> int:
+        return len(self.ref_xy)
+
+
+def _lost(reason: str, method: str, num_matches: int = 0, num_inliers: int = 0) -> TrackingResult:
+    e = np.empty(0, np.int64)
+    return TrackingResult("lost", reason, None, method, num_matches, num_inliers, e, e, np.empty((0, 2)),
+                          np.empty((0, 2)))
+
+
+class Tracker:
+    """Estimates the pose of every frame from 2D-3D matches to the local map."""
+
+    def __init__(self, config: TrackerConfig = TrackerConfig()):
+        config.validate()
+        self.config = config
+        est = pycolmap.AbsolutePoseEstimationOptions()
+        est.ransac.max_error = config.max_error_px
+        est.ransac.min_inlier_ratio = 0.1
+        est.ransac.max_num_trials = 2000
+        est.ransac.random_seed = config.random_seed
+        self._estimation = est
+        ref = pycolmap.AbsolutePoseRefinementOptions()
+        ref.refine_focal_length = False
+        ref.refine_extra_params = False
+        ref.max_num_iterations = 20
+        self._refinement = ref
+
+    def step(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera,
+             predicted: np.ndarray | None = None) -> TrackingResult:
+        """Track ``frame``. predicted: (4, 4) cam_from_world from the motion model, or None."""
+        c = self.config
+        if len(local_map) < c.min_inliers:
+            return _lost(f"local map has only {len(local_map)} points", "none")
+        if len(frame) < c.min_inliers:
+            return _lost(f"frame has only {len(frame)} keypoints", "none")
+        K = camera.calibration_matrix()
+        size = (camera.width, camera.height)
+        desc = frame.features.descriptors
+        initial = None
+        method = "motion"
+        num_matches = 0
+        if predicted is not None:
+            idx, uv = local_map.project(predicted, K, size)
+            pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                                 c.search_radius_px, c.matching)
+            num_matches = len(pairs)
+            if num_matches >= c.min_inliers:
+                initial = self._ransac(frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]], camera)
+        if initial is None:
+            method = "local map"
+            pairs = match_descriptors(local_map.descriptors, desc, local_map.binary, c.matching)
+            num_matches = max(num_matches, len(pairs))
+            if len(pairs) < c.min_inliers:
+                return _lost(f"{len(pairs)} matches to the local map < {c.min_inliers}", method, num_matches)
+            initial = self._ransac(frame.keypoints[pairs[:, 1]], local_map.xyz[pairs[:, 0]], camera)
+            if initial is None:
+                return _lost(f"no pose from {len(pairs)} matches to the local map", method, num_matches)
+        # track the local map: guided search with the estimated pose, then motion-only refinement
+        idx, uv = local_map.project(initial, K, size)
+        pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                             c.refine_radius_px, c.matching)
+        xy = frame.keypoints[pairs[:, 1]]
+        xyz = local_map.xyz[idx[pairs[:, 0]]]
+        pose = initial
+        inl = self._inliers(pose, xy, xyz, K)
+        if inl.sum() >= c.min_inliers:
+            ref = pycolmap.refine_absolute_pose(rigid_from_matrix(pose), xy, xyz, inl, camera, self._refinement)
+            if ref is not None:
+                pose = matrix_from_rigid(ref["cam_from_world"])
+                inl = self._inliers(pose, xy, xyz, K)
+        n_inl = int(inl.sum())
+        if n_inl < c.min_inliers:
+            return _lost(f"{n_inl} pose inliers < {c.min_inliers}", method, num_matches, n_inl)
+        kp_idx = pairs[inl, 1]
+        pids = local_map.ids[idx[pairs[inl, 0]]]
+        pos = np.searchsorted(local_map.ref_ids, pids)
+        pos = np.minimum(pos, max(len(local_map.ref_ids) - 1, 0))
+        in_ref = (local_map.ref_ids[pos] == pids) if len(local_map.ref_ids) else np.zeros(len(pids), bool)
+        return TrackingResult("tracked", f"{n_inl} inliers of {len(pairs)} local-map matches", pose, method,
+                              num_matches, n_inl, kp_idx, pids, local_map.ref_xy[pos[in_ref]],
+                              frame.keypoints[kp_idx[in_ref]])
+
+    def _ransac(self, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera) -> np.ndarray | None:
+        ans = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, camera, self._estimation, self._refinement)
+        if ans is None or ans["num_inliers"] < self.config.min_inliers:
+            return None
+        return matrix_from_rigid(ans["cam_from_world"])
+
+    def _inliers(self, cam_from_world: np.ndarray, xy: np.ndarray, xyz: np.ndarray, K: np.ndarray) -> np.ndarray:
+        Xc = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        z = Xc[:, 2]
+        ok = z > 1e-9
+        uv = Xc[:, :2] / np.where(ok, z, 1.0)[:, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        err2 = ((uv - xy) ** 2).sum(axis=1)
+        return ok & (err2 < self.config.max_error_px ** 2)
