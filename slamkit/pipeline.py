@@ -245,22 +245,34 @@ class Slam:
         self._points_at_last_keyframe = res.slam_map.reconstruction.image(self.last_keyframe).num_points3D
         self.local_map = LocalMap.build(res.slam_map, self.last_keyframe, self.config.tracker.local_keyframes)
         t = time.perf_counter()
-        posed = [res.first, res.second]
-        for f in res.frames:
-            if f.index in (res.first, res.second):
-                continue
-            tr = self.tracker.step(f, self.local_map, res.slam_map.pycolmap_camera, None)
-            rec = self.records[f.index]
-            if tr.tracked:
-                self._set_pose(rec, self.last_keyframe, tr.cam_from_world, TRACKED, absolute=True)
-                posed.append(f.index)
-            else:
-                rec.status = LOST
+        posed = self._track_window(res)
         timings["track"] = time.perf_counter() - t
         record.status = record.status if record.rel_pose is not None else LOST
         self._consecutive_lost = 0
         return self._result(record, INITIALIZED, res.reason, timings, posed_frames=tuple(sorted(posed)),
                             is_keyframe=record.keyframe_image_id > 0)
+
+    def _track_window(self, res) -> list[int]:
+        """Pose the kept frames around the initial pair: forward from the second keyframe, then backward
+        from the first, each predicted by its already-posed neighbour."""
+        frames = sorted(res.frames, key=lambda f: f.index)
+        camera = res.slam_map.pycolmap_camera
+        posed = [res.first, res.second]
+        forward = [f for f in frames if f.index > res.first and f.index != res.second]
+        backward = [f for f in reversed(frames) if f.index < res.first]
+        for seq, anchor in ((forward, res.first), (backward, res.first)):
+            neighbour = self.pose_of(self.records[anchor])
+            for f in seq:
+                tr = self.tracker.step(f, self.local_map, camera, neighbour)
+                rec = self.records[f.index]
+                if tr.tracked:
+                    self._set_pose(rec, self.last_keyframe, tr.cam_from_world, TRACKED, absolute=True)
+                    posed.append(f.index)
+                    neighbour = tr.cam_from_world
+                else:
+                    rec.status = LOST
+        self.segment.frames.sort()
+        return posed
 
     # ----------------------------------------------------------------- tracking
     def _track(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:

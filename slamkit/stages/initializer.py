@@ -47,6 +47,9 @@ class InitializerConfig:
     """RANSAC threshold of the two-view geometry, pixels."""
     max_reproj_error_px: float = 4.0
     min_track_angle_deg: float = 1.5
+    max_history: int = 300
+    """Frames that slid out of the window are kept (features only) up to this many, so they can be
+    tracked once the map exists: every frame gets a pose, not only those after initialization."""
     matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(mutual=False))
     """Exhaustive window matching: ratio test only (a mutual check would double the cost)."""
     random_seed: int = 0
@@ -67,7 +70,8 @@ class InitializerConfig:
 @dataclass(frozen=True, eq=False)
 class InitResult:
     """status: "collecting", "initialized" or "failed". On success ``slam_map`` holds the two keyframes
-    (image ids 1 and 2 for frames ``first`` and ``second``) and ``frames`` the buffered window."""
+    (image ids 1 and 2 for frames ``first`` and ``second``) and ``frames`` every kept frame (the window and
+    the frames that slid out of earlier windows), oldest first."""
 
     status: str
     reason: str
@@ -92,6 +96,7 @@ class Initializer:
         self.camera = camera.pinhole
         self._pycamera = pycolmap_camera(self.camera)
         self.frames: list[FrameFeatures] = []
+        self.history: list[FrameFeatures] = []
         self._matches: dict[tuple[int, int], np.ndarray] = {}
         opts = pycolmap.TwoViewGeometryOptions()
         opts.compute_relative_pose = True
@@ -102,6 +107,7 @@ class Initializer:
 
     def reset(self) -> None:
         self.frames.clear()
+        self.history.clear()
         self._matches.clear()
 
     def _match(self, a: FrameFeatures, b: FrameFeatures) -> np.ndarray:
@@ -124,12 +130,14 @@ class Initializer:
         else:
             result = self._try_best_pair()
         if result.initialized:
-            result = InitResult(**{**result.__dict__, "frames": tuple(self.frames)})
+            result = InitResult(**{**result.__dict__, "frames": tuple(self.history + self.frames)})
             self.reset()
             return result
         if len(self.frames) >= c.init_frames:  # slide the window
             drop = max(1, len(self.frames) // 2) if c.strategy == "best_pair" else 1
             gone = {f.index for f in self.frames[:drop]}
+            self.history = (self.history + self.frames[:drop])[-self.config.max_history:] \
+                if self.config.max_history > 0 else []
             self.frames = self.frames[drop:]
             self._matches = {k: v for k, v in self._matches.items() if k[0] not in gone and k[1] not in gone}
             return InitResult("failed", f"{result.reason}; window slides by {drop} frames")

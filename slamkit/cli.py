@@ -1,0 +1,164 @@
+"""Command line: ``slamkit run | eval | gt | presets`` — thin callers of the library."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from .errors import SlamkitError
+
+
+def _add_config_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("configuration (see slamkit.SlamConfig)")
+    g.add_argument("--preset", default="default", help="named preset (slamkit presets lists them)")
+    g.add_argument("--features", help="feature extractor: orb (default), sift, ...")
+    g.add_argument("--num-features", type=int)
+    g.add_argument("--flow-threshold", type=float, help="keyframe flow threshold (default 0.05)")
+    g.add_argument("--min-tracked-matches", type=int, help="keyframe needs this many tracked matches (50)")
+    g.add_argument("--init-frames", type=int, help="initialization window N (20)")
+    g.add_argument("--init-strategy", choices=["best_pair", "first_inliers"])
+    g.add_argument("--frame-skip", type=int, help="use every n-th frame")
+    g.add_argument("--max-frames", type=int, help="stop after this many frames")
+    g.add_argument("--seed", type=int)
+    g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any config field, dotted for stages, e.g. --set tracker.min_inliers=25")
+
+
+def config_from_args(args: argparse.Namespace):
+    from .config import SlamConfig
+
+    cfg = SlamConfig.preset(args.preset)
+    over = {k: getattr(args, k) for k in ("features", "num_features", "flow_threshold", "min_tracked_matches",
+                                          "init_frames", "init_strategy", "frame_skip", "max_frames", "seed")
+            if getattr(args, k) is not None}
+    for item in args.set:
+        if "=" not in item:
+            raise SlamkitError(f"--set {item!r}: expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        over[k.strip()] = v.strip()
+    return cfg.with_overrides(**over)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import pycolmap
+    from tqdm import tqdm
+
+    from .pipeline import Slam
+    from .sources import open_source
+
+    pycolmap.logging.minloglevel = 2
+    cfg = config_from_args(args)
+    source = open_source(args.source)
+    slam = Slam(source, cfg)
+    out = Path(args.out)
+    print(f"slamkit: {source!r}, {len(slam)} frames to process -> {out}", file=sys.stderr)
+    bar = tqdm(total=len(slam), unit="frame", disable=args.quiet, dynamic_ncols=True)
+    interrupted = None
+    try:
+        for r in slam:
+            bar.update(1)
+            bar.set_postfix_str(f"{r.status} kf={r.num_keyframes} pts={r.num_points}", refresh=False)
+            if args.verbose:
+                tqdm.write(str(r))
+        slam.finish()
+    except KeyboardInterrupt:
+        interrupted = "interrupted by the user"
+    except Exception as e:  # a stage failed: keep what was built, then report
+        interrupted = f"{type(e).__name__}: {e}"
+        if not isinstance(e, SlamkitError):
+            import traceback
+
+            traceback.print_exc()
+    finally:
+        bar.close()
+    slam.save(out)
+    s = slam.summary()
+    print(f"frames {s['frames']}/{s['frames_total']}, posed {s['frames_posed']} ({100 * s['fraction_posed']:.1f} %), "
+          f"keyframes {s['keyframes']}, points {s['points3D']}, {s['fps']:.1f} frames/s", file=sys.stderr)
+    gt = out / "groundtruth_tum.txt"
+    if gt.exists() and s["frames_posed"] >= 3:
+        from .eval import evaluate
+
+        try:
+            ev = evaluate(out / "trajectory_tum.txt", gt)
+            print(f"ATE RMSE {ev['ate']['rmse']:.4f} m (Sim(3)-aligned, {ev['matched']} poses)",
+                  file=sys.stderr)
+        except SlamkitError as e:
+            print(f"evaluation skipped: {e}", file=sys.stderr)
+    print(f"outputs in {out}/ (trajectory_tum.txt, keyframes_tum.txt, trajectory_kitti.txt, sparse/, points.ply, "
+          f"summary.json)")
+    if interrupted:
+        print(f"slamkit: stopped early ({interrupted}); the map and trajectory so far are saved in {out}",
+              file=sys.stderr)
+        return 130 if interrupted.startswith("interrupted") else 1
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from .eval import evaluate
+
+    run = Path(args.run)
+    est = run / "trajectory_tum.txt" if run.is_dir() else run
+    gt = Path(args.gt) if args.gt else run / "groundtruth_tum.txt"
+    if not gt.exists():
+        raise SlamkitError(f"{gt}: no ground truth; pass --gt FILE")
+    result = evaluate(est, gt, max_dt=args.max_dt)
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+def cmd_gt(args: argparse.Namespace) -> int:
+    from .io import write_tum
+    from .sources import open_source
+
+    src = open_source(args.source)
+    gt = src.ground_truth()
+    if gt is None or len(gt) == 0:
+        raise SlamkitError(f"{args.source}: this source has no ground truth")
+    write_tum(args.out, gt)
+    print(f"{len(gt)} poses written to {args.out}")
+    return 0
+
+
+def cmd_presets(args: argparse.Namespace) -> int:
+    from .config import PRESETS
+
+    for name, values in PRESETS.items():
+        print(f"{name:10s} {values}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="slamkit", description="Offline monocular visual SLAM on COLMAP's machinery")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run SLAM on a source and save the map and trajectory")
+    r.add_argument("source", help="'default', 'synthetic:<motion>', a dataset folder, an image folder or a video")
+    r.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    r.add_argument("-v", "--verbose", action="store_true", help="print every frame's result")
+    r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    _add_config_args(r)
+    r.set_defaults(func=cmd_run)
+    e = sub.add_parser("eval", help="ATE/RPE of a run (or a TUM file) against ground truth")
+    e.add_argument("run", help="run folder or trajectory file")
+    e.add_argument("--gt", help="ground truth (TUM or KITTI); default RUN/groundtruth_tum.txt")
+    e.add_argument("--max-dt", type=float, default=0.02)
+    e.set_defaults(func=cmd_eval)
+    g = sub.add_parser("gt", help="write a source's ground truth as a TUM file")
+    g.add_argument("source")
+    g.add_argument("out")
+    g.set_defaults(func=cmd_gt)
+    pr = sub.add_parser("presets", help="list configuration presets")
+    pr.set_defaults(func=cmd_presets)
+    args = p.parse_args(argv)
+    try:
+        return args.func(args)
+    except SlamkitError as e:
+        print(f"slamkit: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
