@@ -1,0 +1,233 @@
+"""Stage-level tests of the SLAM core against exact synthetic geometry."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pycolmap
+import pytest
+
+from slamkit.config import SlamConfig
+from slamkit.errors import ConfigError
+from slamkit.features import (FrameFeatures, MatchingConfig, available_extractors, create_extractor,
+                              guided_match, match_descriptors)
+from slamkit.map import SlamMap, matrix_from_rigid, rigid_from_matrix
+from slamkit.sources import open_source
+from slamkit.stages.flow import flow_score
+from slamkit.stages.initializer import Initializer, InitializerConfig
+from slamkit.stages.keyframes import KeyframeConfig, KeyframeSelector
+from slamkit.stages.mapper import Mapper, sampson_error_px
+from slamkit.stages.tracker import LocalMap, Tracker
+
+pycolmap.logging.minloglevel = 2
+
+
+@pytest.fixture(scope="module")
+def sideways():
+    return open_source("synthetic:sideways?frames=40")
+
+
+def features_of(source, i: int, extractor=None) -> FrameFeatures:
+    extractor = extractor or create_extractor("orb")
+    frame = source[i]
+    f = extractor.extract(frame.gray)
+    ij = np.round(f.keypoints).astype(int)
+    return FrameFeatures(i, frame.frame_id, frame.timestamp, f, f.keypoints.copy(),
+                         frame.color[ij[:, 1], ij[:, 0]])
+
+
+def cam_from_world(source, i: int) -> np.ndarray:
+    return np.linalg.inv(source.gt_poses[i])
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    return math.degrees(math.acos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+
+
+# ----------------------------------------------------------------------------- flow and keyframes
+def test_flow_score_is_median_normalised_flow():
+    ref = np.array([[100.0, 100.0], [200.0, 50.0], [300.0, 300.0]])
+    cur = ref + [[10.0, 0.0], [20.0, -5.0], [30.0, 50.0]]
+    assert flow_score(ref, cur, fx=500.0, fy=250.0) == pytest.approx(20 / 500 + 5 / 250)
+    assert flow_score(np.empty((0, 2)), np.empty((0, 2)), 500, 500) == 0.0
+
+
+@pytest.mark.parametrize("flow,matches,points,at_kf,expected", [
+    (0.06, 60, 300, 300, True),     # flow above threshold, enough matches
+    (0.04, 200, 300, 300, False),   # flow below threshold
+    (0.06, 40, 300, 300, False),    # flow above, too few tracked matches
+    (0.02, 40, 100, 300, True),     # tracking weakening: 100 < 0.5 x 300
+    (0.02, 10, 100, 300, False),    # weakening, but too few matches for a keyframe at all
+])
+def test_keyframe_decisions_follow_thresholds(flow, matches, points, at_kf, expected):
+    d = KeyframeSelector(KeyframeConfig(flow_threshold=0.05, min_tracked_matches=50)).step(flow, matches, points, at_kf)
+    assert d.is_keyframe is expected
+    assert d.reason  # every decision says why
+
+
+def test_keyframe_config_rejects_bad_values():
+    with pytest.raises(ConfigError, match="flow_threshold"):
+        KeyframeSelector(KeyframeConfig(flow_threshold=-0.1))
+    with pytest.raises(ConfigError, match="min_tracked_matches"):
+        KeyframeSelector(KeyframeConfig(min_tracked_matches=0))
+
+
+# ----------------------------------------------------------------------------- features and matching
+def test_extractor_registry_and_shapes(sideways):
+    assert {"orb", "sift"} <= set(available_extractors())
+    gray = sideways[0].gray
+    orb = create_extractor("orb", num_features=1000).extract(gray)
+    assert orb.binary and orb.descriptors.shape[1] == 32 and orb.descriptors.dtype == np.uint8
+    assert 500 <= len(orb) <= 1100
+    sift = create_extractor("sift", num_features=1000).extract(gray)
+    assert not sift.binary and sift.descriptors.shape[1] == 128
+    with pytest.raises(ConfigError, match="unknown extractor"):
+        create_extractor("nope")
+
+
+def test_matches_satisfy_ground_truth_epipolar_geometry(sideways):
+    a, b = features_of(sideways, 0), features_of(sideways, 8)
+    pairs = match_descriptors(a.features.descriptors, b.features.descriptors, True)
+    assert len(pairs) > 300
+    rel = cam_from_world(sideways, 8) @ sideways.gt_poses[0]
+    err = sampson_error_px(a.keypoints[pairs[:, 0]], b.keypoints[pairs[:, 1]], rel, sideways.camera.K)
+    assert np.mean(err < 1.5) > 0.9
+
+
+def test_guided_match_finds_projected_points():
+    rng = np.random.default_rng(0)
+    kps = rng.uniform(0, 600, (500, 2))
+    desc = rng.integers(0, 256, (500, 32), dtype=np.uint8)
+    pick = rng.choice(500, 100, replace=False)
+    proj = kps[pick] + rng.normal(0, 2.0, (100, 2))
+    pairs = guided_match(proj, desc[pick], kps, desc, True, radius=8.0, cfg=MatchingConfig())
+    assert len(pairs) >= 95
+    assert np.all(pick[pairs[:, 0]] == pairs[:, 1])
+    taken = np.zeros(500, bool)
+    taken[pick] = True
+    assert len(guided_match(proj, desc[pick], kps, desc, True, 8.0, MatchingConfig(), kp_taken=taken)) == 0
+
+
+# ----------------------------------------------------------------------------- initialization
+@pytest.mark.parametrize("strategy", ["best_pair", "first_inliers"])
+def test_initializer_recovers_relative_pose_up_to_scale(sideways, strategy):
+    cfg = InitializerConfig(strategy=strategy, init_frames=20)
+    init = Initializer(sideways.camera, cfg)
+    res = None
+    for i in range(20):
+        res = init.step(features_of(sideways, i))
+        if res.initialized:
+            break
+    assert res is not None and res.initialized, res.reason
+    slam_map = res.slam_map
+    (id1, kf1), (id2, kf2) = sorted(slam_map.keyframes.items())
+    est = matrix_from_rigid(slam_map.cam_from_world(id2)) @ np.linalg.inv(matrix_from_rigid(slam_map.cam_from_world(id1)))
+    gt = cam_from_world(sideways, kf2.frame_index) @ sideways.gt_poses[kf1.frame_index]
+    assert rotation_angle_deg(est[:3, :3] @ gt[:3, :3].T) < 0.2
+    t_est, t_gt = est[:3, 3] / np.linalg.norm(est[:3, 3]), gt[:3, 3] / np.linalg.norm(gt[:3, 3])
+    assert math.degrees(math.acos(np.clip(t_est @ t_gt, -1, 1))) < 2.5  # baseline direction, small parallax
+    assert res.num_points >= cfg.min_points
+
+
+def test_initializer_reports_no_parallax_for_pure_rotation():
+    src = open_source("synthetic:rotation?frames=30")
+    init = Initializer(src.camera, InitializerConfig(init_frames=10))
+    statuses = [init.step(features_of(src, i)).status for i in range(10)]
+    assert "initialized" not in statuses
+    assert statuses[-1] == "failed"
+
+
+def test_initializer_config_validation():
+    with pytest.raises(ConfigError, match="init_frames"):
+        InitializerConfig(init_frames=1).validate()
+    with pytest.raises(ConfigError, match="strategy"):
+        InitializerConfig(strategy="magic").validate()
+
+
+# ----------------------------------------------------------------------------- map, triangulation, tracking
+@pytest.fixture(scope="module")
+def exact_map(sideways):
+    """A map of frames 0 and 10 at their exact poses (ground-truth scale), triangulated by pycolmap."""
+    slam_map = SlamMap(sideways.camera)
+    a, b = features_of(sideways, 0), features_of(sideways, 10)
+    ia = slam_map.add_image(0, a.timestamp, a.keypoints, a.features, a.colors)
+    ib = slam_map.add_image(10, b.timestamp, b.keypoints, b.features, b.colors)
+    pairs = match_descriptors(a.features.descriptors, b.features.descriptors, True)
+    rel = cam_from_world(sideways, 10) @ sideways.gt_poses[0]
+    ok = sampson_error_px(a.keypoints[pairs[:, 0]], b.keypoints[pairs[:, 1]], rel, sideways.camera.K) < 1.0
+    slam_map.add_matches(ia, ib, pairs[ok])
+    slam_map.observe(ia, ib)
+    slam_map.register(ia, rigid_from_matrix(cam_from_world(sideways, 0)))
+    slam_map.register(ib, rigid_from_matrix(cam_from_world(sideways, 10)))
+    slam_map.triangulate(ib)
+    return slam_map
+
+
+def test_triangulation_error_within_tolerance(sideways, exact_map):
+    ids, xyz, rgb = exact_map.point_cloud()
+    assert len(ids) > 200
+    kf = exact_map.keyframes[1]
+    pids = exact_map.point3D_ids(1)
+    has = pids >= 0
+    truth = sideways.points(0, kf.keypoints[has])          # exact surface points behind the keypoints
+    est = exact_map.points_xyz(pids[has])
+    err = np.linalg.norm(est - truth, axis=1)
+    depth = np.linalg.norm(truth - sideways.gt_poses[0][:3, 3], axis=1)
+    # a 0.15 m baseline at ~3 m with ~0.5 px keypoint noise gives ~Z / (b f) x 0.5 px = 2 % depth error
+    assert np.median(err / depth) < 0.03
+    assert np.percentile(err / depth, 90) < 0.1
+    assert rgb.any(axis=1).mean() > 0.9                     # points are coloured
+
+
+def test_tracker_recovers_pose_by_pnp(sideways, exact_map):
+    local_map = LocalMap.build(exact_map, 2, num_covisible=5)
+    assert len(local_map) > 200
+    tracker = Tracker()
+    for i, predicted in ((5, None), (14, cam_from_world(sideways, 12))):
+        res = tracker.step(features_of(sideways, i), local_map, exact_map.pycolmap_camera, predicted)
+        assert res.tracked, res.reason
+        gt = cam_from_world(sideways, i)
+        assert rotation_angle_deg(res.cam_from_world[:3, :3] @ gt[:3, :3].T) < 0.1
+        centre_err = np.linalg.norm(np.linalg.inv(res.cam_from_world)[:3, 3] - sideways.gt_poses[i][:3, 3])
+        assert centre_err < 0.005                            # metres (scene is metric here)
+        assert res.num_inliers >= 100
+
+
+def test_tracker_reports_lost_on_unrelated_image(exact_map):
+    rng = np.random.default_rng(1)
+    from slamkit.features import Features
+    kp = rng.uniform(0, 600, (400, 2))
+    feats = Features(kp, rng.integers(0, 256, (400, 32), dtype=np.uint8), np.ones(400, np.float32), True)
+    ff = FrameFeatures(99, 99, 3.3, feats, kp, np.zeros((400, 3), np.uint8))
+    res = Tracker().step(ff, LocalMap.build(exact_map, 2), exact_map.pycolmap_camera, None)
+    assert not res.tracked and res.reason
+
+
+def test_mapper_registers_keyframe_and_triangulates(sideways, exact_map):
+    # a copy of the map grows by one keyframe at frame 20, tracked with its exact pose
+    slam_map = exact_map
+    before = slam_map.num_points
+    local_map = LocalMap.build(slam_map, 2)
+    ff = features_of(sideways, 20)
+    tr = Tracker().step(ff, local_map, slam_map.pycolmap_camera, cam_from_world(sideways, 20))
+    assert tr.tracked
+    res = Mapper().step(slam_map, ff, tr.cam_from_world, tr.point2D_idxs, tr.point3D_ids, ref_image_id=2)
+    assert res.registered, res.reason
+    assert res.num_points >= 50 and slam_map.num_points > before
+    assert slam_map.num_keyframes == 3
+    covis = dict(slam_map.covisible(res.image_id))
+    assert covis.get(2, 0) > 50
+
+
+def test_config_contradictions_are_errors():
+    with pytest.raises(ConfigError, match="min_tri_angle"):
+        SlamConfig().with_overrides(**{"initializer.min_tri_angle_deg": 1.0, "ba.min_tri_angle_deg": 1.5})
+    with pytest.raises(ConfigError, match="init_frames"):
+        SlamConfig().with_overrides(init_frames=1)
+    with pytest.raises(ConfigError, match="not a valid"):
+        SlamConfig().with_overrides(flow_threshold="fast")
+    with pytest.raises(ConfigError, match="unknown configuration parameter"):
+        SlamConfig().with_overrides(flow_treshold=0.1)
+    with pytest.raises(ConfigError, match="unknown preset"):
+        SlamConfig.preset("nope")
