@@ -1,0 +1,558 @@
+"""Synthetic sequences with exact ground truth, and the embedded default sequence.
+
+Tests and the demo run without any dataset: frames are rendered from a textured room
+(:func:`~slamkit.sources.scene.default_room`) with exact intrinsics and poses (:mod:`slamkit.sources.scene`
+explains the renderer). Specs understood by :func:`open_synthetic` (and by ``open_source``)::
+
+    default                          the embedded default sequence: 360 frames, 640x480, a hand-held loop
+                                     through the room; rendered once and cached on disk as JPEG + TUM files
+    synthetic:<motion>               a sequence rendered on the fly, e.g. ``synthetic:sideways``
+    synthetic:<motion>?k=v&k=v       with parameters, e.g. ``synthetic:handheld?frames=200&seed=1``
+
+Motions (:data:`MOTIONS`): ``sideways``, ``forward``, ``orbit``, ``rotation`` (pure rotation, zero
+baseline), ``loop`` (returns exactly to its start), ``handheld`` (smooth random motion) and ``default``
+(the motion of the default sequence, rendered live). Parameters of every motion:
+
+    frames=N     number of frames (>= 2; each motion has its own default)
+    seed=S       integer seed of random motions and of the image noise (default 0)
+    fps=F        frame rate; timestamps are ``index / fps`` seconds (default 30)
+    noise=SIGMA  Gaussian image noise in grey levels (default 0: noise-free)
+    scale=K      image size factor of the 640x480 camera (default 1; intrinsics scaled accordingly)
+
+plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
+``jitter``: see each motion function). An unknown motion or parameter, or a bad value, raises ConfigError.
+
+World frame: z up, metres, floor at z = 0; poses are camera-to-world with OpenCV camera axes.
+
+The default sequence is cached in ``$SLAMKIT_CACHE/default-v1/`` (or ``$XDG_CACHE_HOME/slamkit/...``,
+else ``~/.cache/slamkit/...``) in TUM RGB-D layout (``rgb/*.jpg``, ``rgb.txt``, ``groundtruth.txt``)
+plus ``camera.json``; it is written atomically (rendered into a temporary sibling, then renamed), and the
+folder name carries a version that changes whenever the renderer or the scene changes.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import logging
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..errors import ConfigError, SourceError
+from ..types import Trajectory
+from .base import FrameSource, ImageListSource, select
+from .scene import ROOM_X, ROOM_Y, Rendering, Scene, default_room, look_at
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CAMERA = Intrinsics(640, 480, 500.0, 500.0, 319.5, 239.5)
+"""Camera of the synthetic sequences: 640x480 pinhole, fx = fy = 500 px (65 x 51 degrees), no distortion."""
+
+DEFAULT_VERSION = "default-v1"
+"""Name of the cache folder of the default sequence; change it whenever the renderer or scene changes."""
+
+DEFAULT_FRAMES = 360
+DEFAULT_FPS = 30.0
+DEFAULT_NOISE = 1.0
+"""Image noise (grey levels) of the default sequence."""
+DEFAULT_JPEG_QUALITY = 95
+_NOISE_PAD = 97
+
+
+# ----------------------------------------------------------------------------------------------------------
+# motions: functions returning (N, 4, 4) camera-to-world poses inside the default room
+
+
+def _check_frames(n: int) -> int:
+    if int(n) != n or n < 2:
+        raise ConfigError(f"frames must be an integer >= 2 (got {n})")
+    return int(n)
+
+
+def _check_positive(name: str, value: float) -> float:
+    if not (math.isfinite(value) and value > 0):
+        raise ConfigError(f"{name} must be a positive number (got {value})")
+    return float(value)
+
+
+def _travel(n: int, speed: float, length: float) -> np.ndarray:
+    """(n,) distances along a path of ``length`` metres at ``speed`` metres per frame: straight through when
+    the path is long enough, else back and forth with smooth (cosine) turns."""
+    s = np.arange(n) * speed
+    if s[-1] <= length:
+        return s
+    return 0.5 * length * (1.0 - np.cos(np.pi * s / length))
+
+
+def _poses_looking_at(centers: np.ndarray, targets: np.ndarray, rolls: np.ndarray | None = None) -> np.ndarray:
+    rolls = np.zeros(len(centers)) if rolls is None else rolls
+    return np.stack([look_at(c, t, roll=r) for c, t, r in zip(centers, targets, rolls)])
+
+
+def sideways(n: int = 120, speed: float = 0.015) -> np.ndarray:
+    """Translation along x (parallel to the front wall, 3.2 m away), looking straight at the wall.
+
+    ``speed`` metres per frame; the path is centred on x = 0 and at most 2.6 m long (longer motions go
+    back and forth)."""
+    n, speed = _check_frames(n), _check_positive("speed", speed)
+    length = 2.6
+    s = _travel(n, speed, length)
+    x = s - 0.5 * min(s.max(), length)
+    centers = np.stack([x, np.full(n, -1.0), np.full(n, 1.45)], axis=1)
+    return _poses_looking_at(centers, centers + [0.0, 3.0, -0.15])
+
+
+def forward(n: int = 120, speed: float = 0.015) -> np.ndarray:
+    """Translation along the optical axis towards the front wall, from y = -1.7 m (at most 2.4 m long)."""
+    n, speed = _check_frames(n), _check_positive("speed", speed)
+    s = _travel(n, speed, 2.4)
+    centers = np.stack([np.full(n, 0.2), -1.7 + s, np.full(n, 1.4)], axis=1)
+    return _poses_looking_at(centers, centers + [0.0, 3.0, -0.35])
+
+
+def orbit(n: int = 240, speed: float = 0.015, radius: float = 1.0) -> np.ndarray:
+    """Circle of ``radius`` metres (1.45 m high) around the cube in the middle of the room, looking at the
+    cube; starts south of it and turns counter-clockwise at ``speed`` metres per frame."""
+    n, speed = _check_frames(n), _check_positive("speed", speed)
+    radius = _check_positive("radius", radius)
+    if radius > 1.1:
+        raise ConfigError(f"radius must be <= 1.1 m to stay clear of the furniture (got {radius})")
+    centre = np.array([-0.3, 0.2])
+    theta = -np.pi / 2 + np.arange(n) * speed / radius
+    centers = np.stack([centre[0] + radius * np.cos(theta), centre[1] + radius * np.sin(theta),
+                        np.full(n, 1.45)], axis=1)
+    targets = np.tile([centre[0], centre[1], 0.8], (n, 1))
+    return _poses_looking_at(centers, targets)
+
+
+def rotation(n: int = 150, amplitude: float = 40.0) -> np.ndarray:
+    """Pure rotation in place (zero baseline): the camera pans +-``amplitude`` degrees (one sine period)
+    and tilts a little, standing at (0, -1, 1.45)."""
+    n = _check_frames(n)
+    amplitude = _check_positive("amplitude", amplitude)
+    if amplitude > 80:
+        raise ConfigError(f"amplitude must be <= 80 degrees (got {amplitude})")
+    phase = 2 * np.pi * np.arange(n) / (n - 1)
+    yaw = np.radians(amplitude) * np.sin(phase)
+    pitch = np.radians(-4.0 + 6.0 * np.sin(2 * phase))
+    c = np.array([0.0, -1.0, 1.45])
+    dirs = np.stack([np.sin(yaw) * np.cos(pitch), np.cos(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
+    return _poses_looking_at(np.tile(c, (n, 1)), c + dirs)
+
+
+def _periodic_noise(n: int, rng: np.random.Generator, amplitude: float, cycles: tuple[int, int],
+                    terms: int = 4) -> np.ndarray:
+    """(n,) smooth random signal, a sum of ``terms`` sinusoids with whole numbers of periods over the n
+    frames (so it returns to its first value on the last frame), peak at most ``amplitude``."""
+    i = np.arange(n) / (n - 1)
+    k = rng.integers(cycles[0], cycles[1] + 1, terms)
+    ph = rng.uniform(0, 2 * np.pi, terms)
+    w = rng.uniform(0.5, 1.0, terms)
+    w *= amplitude / w.sum()
+    return (w[:, None] * (np.sin(2 * np.pi * k[:, None] * i + ph[:, None]) - np.sin(ph[:, None]))).sum(0) / 2
+
+
+def loop(n: int = 240, jitter: float = 0.0, seed: int = 0) -> np.ndarray:
+    """A closed loop: an ellipse (2.4 m x 1 m, 1.45 m high) in the back half of the room, starting with a
+    sideways move, looking at the front half while the gaze sweeps left and right. The last pose equals the
+    first. ``jitter`` (0..2) adds periodic hand-held shake: about 3 cm, 0.1 m of gaze and 1.5 degrees of roll
+    per unit, drawn from ``seed``."""
+    n = _check_frames(n)
+    if not (math.isfinite(jitter) and 0 <= jitter <= 2):
+        raise ConfigError(f"jitter must be in [0, 2] (got {jitter})")
+    phi = 2 * np.pi * np.arange(n) / (n - 1)
+    centers = np.stack([1.2 * np.sin(phi), -0.6 - 0.5 * (1 - np.cos(phi)), 1.45 + 0.08 * np.sin(2 * phi)], axis=1)
+    targets = np.stack([2.6 * np.sin(phi) + 0.5 * np.sin(2 * phi), np.full(n, ROOM_Y),
+                        1.15 + 0.2 * np.sin(3 * phi)], axis=1)
+    rolls = np.zeros(n)
+    if jitter > 0:
+        rng = np.random.default_rng(int(seed))
+        for k in range(3):
+            centers[:, k] += _periodic_noise(n, rng, 0.03 * jitter, (5, 14))
+            targets[:, k] += _periodic_noise(n, rng, 0.10 * jitter, (3, 10))
+        rolls += np.radians(_periodic_noise(n, rng, 1.5 * jitter, (2, 8)))
+    return _poses_looking_at(centers, targets, rolls)
+
+
+def _random_signal(rng: np.random.Generator, amplitude: float, terms: int = 4) -> Callable[[np.ndarray], np.ndarray]:
+    """A smooth random signal ``t -> (len(t),)``: ``terms`` sinusoids of 0.3..1 cycles per unit time with
+    random phases, amplitudes summing to ``amplitude``."""
+    f = rng.uniform(0.3, 1.0, terms)
+    ph = rng.uniform(0, 2 * np.pi, terms)
+    w = rng.uniform(0.3, 1.0, terms)
+    w *= amplitude / w.sum()
+    return lambda t: (w[:, None] * np.sin(2 * np.pi * f[:, None] * np.asarray(t)[None, :] + ph[:, None])).sum(0)
+
+
+def handheld(n: int = 300, speed: float = 0.015, seed: int = 0) -> np.ndarray:
+    """Smooth random hand-held motion: position (within x +-1.2 m, y -1.6..-0.4 m, z 1.3..1.6 m) and gaze
+    point (on the front half of the room) are sums of random low-frequency sinusoids, plus up to 2 degrees
+    of roll. Time is scaled so that the mean speed is ``speed`` metres per frame."""
+    n, speed = _check_frames(n), _check_positive("speed", speed)
+    rng = np.random.default_rng(int(seed))
+    cx, cy, cz = _random_signal(rng, 1.2), _random_signal(rng, 0.6), _random_signal(rng, 0.15)
+    gx, gz, roll = _random_signal(rng, 2.0), _random_signal(rng, 0.4), _random_signal(rng, 2.0)
+
+    def centers(t: np.ndarray) -> np.ndarray:
+        return np.stack([cx(t), -1.0 + cy(t), 1.45 + cz(t)], axis=1)
+
+    t = np.linspace(0.0, 1.0, n)
+    for _ in range(6):  # fixed point: the mean speed is nearly proportional to the time scale
+        mean_speed = np.linalg.norm(np.diff(centers(t), axis=0), axis=1).mean()
+        t *= speed / max(mean_speed, 1e-12)
+    targets = np.stack([gx(t), np.full(n, ROOM_Y), 1.2 + gz(t)], axis=1)
+    return _poses_looking_at(centers(t), targets, np.radians(roll(t)))
+
+
+def default_motion(n: int = DEFAULT_FRAMES, seed: int = 0) -> np.ndarray:
+    """The motion of the default sequence: :func:`loop` with hand-held jitter (1.0)."""
+    return loop(n, jitter=1.0, seed=seed)
+
+
+MOTIONS: dict[str, Callable[..., np.ndarray]] = {
+    "sideways": sideways,
+    "forward": forward,
+    "orbit": orbit,
+    "rotation": rotation,
+    "loop": loop,
+    "handheld": handheld,
+    "default": default_motion,
+}
+"""Motion name -> function ``(n, ...) -> (N, 4, 4)`` camera-to-world poses in the default room."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the source
+
+
+class SyntheticSource(FrameSource):
+    """Frames rendered on access from ``scene`` at the given camera-to-world ``poses`` (N, 4, 4).
+
+    Deterministic: the same arguments give bit-identical images. Frame ``k`` of the pose list has timestamp
+    ``k / fps`` and frame id ``k``; ``frame_skip``/``max_frames`` select among the poses as for datasets.
+    ``noise`` is the standard deviation (grey levels) of Gaussian noise added to each image, drawn from
+    ``(seed, frame id)``. ``gt_poses`` are the exact poses of the delivered frames.
+    """
+
+    def __init__(self, scene: Scene, poses: np.ndarray, intrinsics: Intrinsics = DEFAULT_CAMERA,
+                 fps: float = DEFAULT_FPS, seed: int = 0, *, noise: float = 0.0, frame_skip: int = 1,
+                 max_frames: int | None = None, name: str = "synthetic"):
+        poses = np.array(poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(poses) == 0 or not np.isfinite(poses).all():
+            raise ConfigError("SyntheticSource: poses must be a non-empty (N, 4, 4) array of finite numbers")
+        fps = _check_positive("fps", fps)
+        if not (math.isfinite(noise) and noise >= 0):
+            raise ConfigError(f"noise must be >= 0 grey levels (got {noise})")
+        if intrinsics.has_distortion:
+            raise ConfigError("SyntheticSource: the renderer is pinhole only; intrinsics.dist must be zero")
+        keep = select(len(poses), frame_skip, max_frames)
+        self.name = name
+        self.scene = scene
+        self.camera = intrinsics
+        self.fps = fps
+        self.seed = int(seed)
+        self.noise = float(noise)
+        self.all_poses = poses
+        self.frame_ids = keep.astype(np.int64)
+        self.timestamps = keep / fps
+        self.gt_poses = poses[keep].copy()
+        self._noise_field: np.ndarray | None = None
+
+    def rendering(self, i: int) -> Rendering:
+        """Noise-free :class:`~slamkit.sources.scene.Rendering` (image, exact depth, quad ids) of frame i."""
+        return self.scene.render(self.gt_poses[i], self.camera)
+
+    def depth(self, i: int) -> np.ndarray:
+        """(H, W) float64 exact z-depth in metres of the pixel centres of delivered frame ``i``."""
+        return self.scene.depth(self.gt_poses[i], self.camera)
+
+    def points(self, i: int, pixels: np.ndarray) -> np.ndarray:
+        """(N, 3) exact world points seen at (N, 2) pixel coordinates of delivered frame ``i``."""
+        return self.scene.points(self.gt_poses[i], self.camera, pixels)
+
+    def image(self, i: int) -> np.ndarray:
+        """(H, W, 3) uint8 BGR image of delivered frame ``i`` (with the source's noise)."""
+        import cv2
+
+        img = self.scene.render(self.gt_poses[i], self.camera).image
+        if self.noise > 0:
+            # Gaussian noise, rounded to grey levels: a window of a noise field drawn once from the seed, at
+            # an offset drawn from (seed, frame id) -- as random as fresh noise at a fraction of the cost
+            h, w = img.shape[:2]
+            if self._noise_field is None:
+                field = np.random.default_rng([self.seed, 0x6E6F697365]).standard_normal((h + _NOISE_PAD, w + _NOISE_PAD, 3))
+                self._noise_field = np.round(field * self.noise).astype(np.int16)
+            dy, dx = np.random.default_rng([self.seed, int(self.frame_ids[i])]).integers(0, _NOISE_PAD, 2)
+            img = cv2.add(img, self._noise_field[dy:dy + h, dx:dx + w], dtype=cv2.CV_8U)  # saturating
+        return img
+
+    def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
+        return self.image(i), None
+
+
+def synthetic_source(motion: str = "default", *, frames: int | None = None, seed: int = 0,
+                     fps: float = DEFAULT_FPS, noise: float = 0.0, scale: float = 1.0, frame_skip: int = 1,
+                     max_frames: int | None = None, **motion_kw) -> SyntheticSource:
+    """A :class:`SyntheticSource` of the default room for a named motion of :data:`MOTIONS`.
+
+    ``frames`` defaults to the motion's own default; ``seed`` goes to the motion (when it is random) and to
+    the image noise; ``motion_kw`` are the motion function's keyword parameters.
+    """
+    if motion not in MOTIONS:
+        raise ConfigError(f"unknown synthetic motion {motion!r}; choose from {', '.join(MOTIONS)}")
+    fn = MOTIONS[motion]
+    params = inspect.signature(fn).parameters
+    unknown = sorted(set(motion_kw) - (set(params) - {"n", "seed"}))
+    if unknown:
+        raise ConfigError(f"synthetic motion {motion!r} takes no parameter {', '.join(map(repr, unknown))} "
+                          f"(accepted: {', '.join(_accepted(motion))})")
+    kw = dict(motion_kw)
+    if frames is not None:
+        kw["n"] = frames
+    if "seed" in params:
+        kw["seed"] = seed
+    scale = _check_positive("scale", scale)
+    if scale > 4:
+        raise ConfigError(f"scale must be <= 4 (got {scale})")
+    camera = DEFAULT_CAMERA if scale == 1 else DEFAULT_CAMERA.scaled(scale)
+    poses = fn(**kw)
+    label = motion if not motion_kw and frames is None else f"{motion}({len(poses)})"
+    return SyntheticSource(default_room(), poses, camera, fps=fps, seed=seed, noise=noise, frame_skip=frame_skip,
+                           max_frames=max_frames, name=f"synthetic/{label}")
+
+
+_COMMON = ("frames", "seed", "fps", "noise", "scale")
+
+
+def _accepted(motion: str) -> list[str]:
+    own = [p for p in inspect.signature(MOTIONS[motion]).parameters if p not in ("n", "seed")]
+    return list(_COMMON) + own
+
+
+def parse_spec(spec: str) -> tuple[str, dict[str, float | int]]:
+    """``"synthetic:<motion>?k=v&..."`` -> (motion, {parameter: number}); ConfigError names what is wrong."""
+    text = str(spec).strip()
+    if not text.startswith("synthetic:"):
+        raise SourceError(f"{spec!r} is not a synthetic spec (expected 'default' or 'synthetic:<motion>[?k=v&...]')")
+    body = text[len("synthetic:"):]
+    motion, _, query = body.partition("?")
+    motion = motion.strip()
+    if motion not in MOTIONS:
+        raise ConfigError(f"{spec!r}: unknown synthetic motion {motion!r}; choose from {', '.join(MOTIONS)} "
+                          "(e.g. 'synthetic:handheld?frames=200&seed=1')")
+    params: dict[str, float | int] = {}
+    accepted = _accepted(motion)
+    for item in filter(None, query.split("&")):
+        if "=" not in item:
+            raise ConfigError(f"{spec!r}: parameter {item!r} has no value (write {item}=VALUE)")
+        key, _, value = item.partition("=")
+        key, value = key.strip(), value.strip()
+        if key not in accepted:
+            raise ConfigError(f"{spec!r}: synthetic motion {motion!r} takes no parameter {key!r} "
+                              f"(accepted: {', '.join(accepted)})")
+        if key in params:
+            raise ConfigError(f"{spec!r}: parameter {key!r} is given twice")
+        try:
+            number = float(value)
+        except ValueError:
+            raise ConfigError(f"{spec!r}: parameter {key}={value!r} is not a number") from None
+        if key in ("frames", "seed"):
+            if not number.is_integer():
+                raise ConfigError(f"{spec!r}: parameter {key}={value!r} must be an integer")
+            number = int(number)
+        if key == "seed" and number < 0:
+            raise ConfigError(f"{spec!r}: parameter seed={value!r} must be >= 0")
+        params[key] = number
+    return motion, params
+
+
+def open_synthetic(spec: str, *, frame_skip: int = 1, max_frames: int | None = None) -> FrameSource:
+    """Open ``default`` (the cached default sequence) or ``synthetic:<motion>[?k=v&...]`` (rendered on
+    access); see the module docstring for motions and parameters. ConfigError/SourceError for a bad spec."""
+    text = str(spec).strip()
+    if text == "default":
+        return open_default(frame_skip=frame_skip, max_frames=max_frames)
+    motion, params = parse_spec(text)
+    source = synthetic_source(motion, frame_skip=frame_skip, max_frames=max_frames, **params)
+    return source
+
+
+# ----------------------------------------------------------------------------------------------------------
+# writing sequences to disk (TUM RGB-D layout) and the cached default sequence
+
+
+def write_tum_sequence(source: FrameSource, folder: str | Path, *, image_format: str = "png",
+                       jpeg_quality: int = DEFAULT_JPEG_QUALITY, depth: bool = False) -> Path:
+    """Write every frame of ``source`` to ``folder`` in TUM RGB-D layout; returns the folder.
+
+    Writes ``rgb/<timestamp>.<png|jpg>``, ``rgb.txt`` (``timestamp filename``), ``groundtruth.txt``
+    (``timestamp tx ty tz qx qy qz qw``, camera-to-world, for the frames that have ground truth) and
+    ``camera.json`` (:meth:`Intrinsics.to_dict`). With ``depth=True`` (a :class:`SyntheticSource` only) also
+    ``depth/<timestamp>.png`` (uint16, metres x 5000, 0 = none, as TUM) and ``depth.txt``. Timestamps are
+    written with 6 decimals, the same string in every file.
+    """
+    import cv2
+
+    from ..io.trajectory import write_tum
+
+    if image_format not in ("png", "jpg"):
+        raise ConfigError(f"image_format must be 'png' or 'jpg' (got {image_format!r})")
+    if depth and not isinstance(source, SyntheticSource):
+        raise ConfigError("write_tum_sequence: depth=True needs a SyntheticSource (exact depth maps)")
+    folder = Path(folder)
+    (folder / "rgb").mkdir(parents=True, exist_ok=True)
+    if depth:
+        (folder / "depth").mkdir(exist_ok=True)
+    stamps = [f"{t:.6f}" for t in np.asarray(source.timestamps, dtype=np.float64)]
+    if len(set(stamps)) != len(stamps):
+        raise ConfigError("write_tum_sequence: timestamps are not distinct at 6 decimals")
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if image_format == "jpg" else []
+    rgb_lines = ["# color images\n", f"# file: '{source.name}' (slamkit synthetic)\n", "# timestamp filename\n"]
+    depth_lines = ["# depth maps (uint16, metres x 5000)\n", f"# file: '{source.name}'\n", "# timestamp filename\n"]
+    for i, stamp in enumerate(stamps):
+        if isinstance(source, SyntheticSource):
+            bgr = source.image(i)
+        else:
+            bgr = cv2.cvtColor(source[i].color, cv2.COLOR_RGB2BGR)
+        name = f"rgb/{stamp}.{image_format}"
+        if not cv2.imwrite(str(folder / name), bgr, params):
+            raise SourceError(f"{folder / name}: could not be written")
+        rgb_lines.append(f"{stamp} {name}\n")
+        if depth:
+            z = source.depth(i)
+            d16 = np.where(np.isfinite(z) & (z * 5000 < 65535), np.round(z * 5000), 0).astype(np.uint16)
+            dname = f"depth/{stamp}.png"
+            cv2.imwrite(str(folder / dname), d16)
+            depth_lines.append(f"{stamp} {dname}\n")
+    (folder / "rgb.txt").write_text("".join(rgb_lines))
+    if depth:
+        (folder / "depth.txt").write_text("".join(depth_lines))
+    if source.gt_poses is not None:
+        ok = np.isfinite(source.gt_poses).all(axis=(1, 2))
+        t = np.array([float(s) for s in stamps])
+        write_tum(folder / "groundtruth.txt", Trajectory(t[ok], source.gt_poses[ok]))
+    (folder / "camera.json").write_text(json.dumps(source.camera.to_dict(), indent=2) + "\n")
+    return folder
+
+
+def cache_root() -> Path:
+    """Folder of slamkit's on-disk caches: ``$SLAMKIT_CACHE``, else ``$XDG_CACHE_HOME/slamkit``, else
+    ``~/.cache/slamkit``."""
+    env = os.environ.get("SLAMKIT_CACHE")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    if xdg:
+        return Path(xdg).expanduser() / "slamkit"
+    return Path.home() / ".cache" / "slamkit"
+
+
+def default_sequence_dir() -> Path:
+    """Where the default sequence is cached: ``cache_root() / DEFAULT_VERSION``."""
+    return cache_root() / DEFAULT_VERSION
+
+
+def default_source() -> SyntheticSource:
+    """The default sequence rendered live (what the cache holds, before JPEG compression)."""
+    return SyntheticSource(default_room(), default_motion(DEFAULT_FRAMES), DEFAULT_CAMERA, fps=DEFAULT_FPS,
+                           seed=0, noise=DEFAULT_NOISE, name="default")
+
+
+def _cache_complete(folder: Path) -> bool:
+    return all((folder / f).is_file() for f in ("rgb.txt", "groundtruth.txt", "camera.json"))
+
+
+def ensure_default_sequence() -> Path:
+    """Render the default sequence into its cache folder unless it is already there; returns the folder.
+
+    The frames are rendered into a temporary sibling folder that is renamed into place when complete, so a
+    crash never leaves a partial cache and concurrent first uses are safe (the first rename wins).
+    """
+    folder = default_sequence_dir()
+    if _cache_complete(folder):
+        return folder
+    root = folder.parent
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=root))
+    except OSError as e:
+        raise SourceError(f"cannot create the cache folder {root} for the default sequence ({e}); "
+                          "set SLAMKIT_CACHE to a writable folder") from e
+    try:
+        log.info("rendering the default sequence (%d frames) into %s (once)", DEFAULT_FRAMES, folder)
+        t0 = time.perf_counter()
+        write_tum_sequence(default_source(), tmp, image_format="jpg", jpeg_quality=DEFAULT_JPEG_QUALITY)
+        meta = dict(version=DEFAULT_VERSION, frames=DEFAULT_FRAMES, fps=DEFAULT_FPS, noise=DEFAULT_NOISE,
+                    jpeg_quality=DEFAULT_JPEG_QUALITY, render_seconds=round(time.perf_counter() - t0, 2))
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
+        if folder.exists():  # incomplete leftover (files deleted by hand): move it aside
+            stale = Path(tempfile.mkdtemp(prefix=f".{folder.name}.stale.", dir=root))
+            os.replace(folder, stale / folder.name)
+            shutil.rmtree(stale, ignore_errors=True)
+        try:
+            os.rename(tmp, folder)
+        except OSError:
+            if not _cache_complete(folder):  # not a concurrent writer that won the race
+                raise
+        log.info("default sequence rendered in %.1f s", time.perf_counter() - t0)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return folder
+
+
+def open_tum_sequence(folder: str | Path, *, name: str | None = None, frame_skip: int = 1,
+                      max_frames: int | None = None) -> ImageListSource:
+    """Open a folder written by :func:`write_tum_sequence` (its ``camera.json`` gives the intrinsics)."""
+    from ..io.trajectory import read_tum
+
+    folder = Path(folder)
+    for f in ("rgb.txt", "camera.json"):
+        if not (folder / f).is_file():
+            raise SourceError(f"{folder / f} does not exist (not a sequence written by write_tum_sequence?)")
+    camera = Intrinsics.from_dict(json.loads((folder / "camera.json").read_text()))
+    stamps, names = [], []
+    for lineno, line in enumerate((folder / "rgb.txt").read_text().splitlines(), 1):
+        if not line.strip() or line.lstrip().startswith("#"):
+            continue
+        parts = line.split()
+        if len(parts) != 2:
+            from ..errors import FormatError
+
+            raise FormatError(folder / "rgb.txt", lineno, "expected 'timestamp filename'")
+        stamps.append(float(parts[0]))
+        names.append(parts[1])
+    t = np.asarray(stamps)
+    keep = select(len(t), frame_skip, max_frames)
+    gt = None
+    if (folder / "groundtruth.txt").is_file():
+        traj = read_tum(folder / "groundtruth.txt")
+        gt = np.full((len(t), 4, 4), np.nan)
+        pos = np.searchsorted(traj.timestamps, t)
+        pos = np.clip(pos, 0, max(len(traj) - 1, 0))
+        ok = np.abs(traj.timestamps[pos] - t) < 1e-7 if len(traj) else np.zeros(len(t), bool)
+        gt[ok] = traj.poses[pos[ok]]
+        gt = gt[keep]
+    return ImageListSource(name=name or folder.name, camera=camera, paths=[folder / names[i] for i in keep],
+                           timestamps=t[keep], frame_ids=keep, gt_poses=gt)
+
+
+def open_default(*, frame_skip: int = 1, max_frames: int | None = None) -> ImageListSource:
+    """The embedded default sequence (rendered into the cache on first use, then read from the JPEGs)."""
+    folder = ensure_default_sequence()
+    return open_tum_sequence(folder, name="default", frame_skip=frame_skip, max_frames=max_frames)
+
+
+__all__ = [
+    "DEFAULT_CAMERA", "DEFAULT_VERSION", "MOTIONS", "SyntheticSource", "cache_root", "default_motion",
+    "default_sequence_dir", "default_source", "ensure_default_sequence", "forward", "handheld", "loop",
+    "open_default", "open_synthetic", "open_tum_sequence", "orbit", "parse_spec", "rotation", "sideways",
+    "synthetic_source", "write_tum_sequence",
+]
