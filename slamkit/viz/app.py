@@ -1,0 +1,579 @@
+"""The notebook app: controls, the 3D map, the frame view and the running summary, as ipywidgets.
+
+:class:`SlamApp` owns a :class:`~slamkit.pipeline.Slam` and a :class:`~slamkit.viz.meshcat_view.MapView`.
+Widgets never touch the running pipeline's configuration: they edit a copy, shown as *pending* until
+**Reset** starts over with it. Buttons call only pipeline methods (``step``, ``reset``, ``save``) and the
+views' drawing methods.
+
+- **Step** processes one frame; **Run** steps until paused or done in an asyncio task that yields to the
+  kernel after every frame (``await asyncio.sleep(0)``), so the notebook and the Pause button stay live;
+  **Reset** applies the pending settings (and source) and starts over.
+- The map view is redrawn after keyframes (only what changed is sent); the current frame moves every step.
+- The same methods work without a browser: ``app.step()``, ``app.run(n)``, ``app.reset()`` (notebooks
+  executed headless, tests).
+
+>>> app = SlamApp("default", SlamConfig().with_overrides(max_frames=120))   # doctest: +SKIP
+>>> app                                                                     # the widgets
+>>> app.step(); app.result.timings                                          # one frame, by hand
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import traceback
+from pathlib import Path
+
+import ipywidgets as W
+import numpy as np
+
+from ..config import SlamConfig
+from ..errors import SlamkitError
+from ..features import available_extractors
+from ..pipeline import Slam, StepResult
+from ..sources import open_source
+from . import frame_view as fv
+from .meshcat_view import MapView, ViewSettings
+
+DEFAULT_SOURCE = "default"
+"""The embedded synthetic sequence (exact ground truth)."""
+
+_LABELS = {
+    "source": "source",
+    "frame_skip": "frame skip",
+    "max_frames": "max frames",
+    "init_frames": "initialization frames",
+    "flow_threshold": "flow threshold",
+    "min_tracked_matches": "min tracked matches",
+    "features": "extractor",
+}
+
+
+def _config_values(config: SlamConfig, source_len: int) -> dict:
+    """The values the controls show for a config."""
+    n_max = max(1, math.ceil(source_len / config.frame_skip))
+    return {
+        "frame_skip": config.frame_skip,
+        "max_frames": min(config.max_frames or n_max, n_max),
+        "init_frames": config.initializer.init_frames,
+        "flow_threshold": config.keyframes.flow_threshold,
+        "min_tracked_matches": config.keyframes.min_tracked_matches,
+        "features": config.features,
+    }
+
+
+class SlamApp:
+    """Step-through SLAM in a notebook: controls, 3D map (meshcat), frame view and summary.
+
+    source: ``"default"`` (embedded sequence) or a dataset path / spec for ``open_source``; config: the
+    starting configuration; out_dir: where **Save** writes (and **Load** reads) a run; view: a MapView to
+    draw into (by default one with its own loopback meshcat server, stopped by :meth:`close`).
+    """
+
+    def __init__(self, source: str = DEFAULT_SOURCE, config: SlamConfig | None = None,
+                 out_dir: str | Path = "runs/notebook", view: MapView | None = None, map_height: int = 480,
+                 frame_width: int = 400):
+        self._sources: dict[str, object] = {}
+        self.source_spec = str(source)
+        self.slam = Slam(self._open(self.source_spec), (config or SlamConfig()).validate())
+        self.view = view if view is not None else MapView()
+        self._own_view = view is None
+        self.frame_width = int(frame_width)
+        self.map_height = int(map_height)
+        self.results: list[StepResult] = []
+        self.flow_pairs: tuple[np.ndarray, np.ndarray] = (np.empty((0, 2)), np.empty((0, 2)))
+        self._reproj = float("nan")
+        self._task: asyncio.Task | None = None
+        self._running = False
+        self._showing_run: Path | None = None
+        self._build_widgets(out_dir)
+        self._refresh_all()
+
+    # ------------------------------------------------------------------ sources
+    def _open(self, spec: str):
+        if spec not in self._sources:
+            self._sources[spec] = open_source(spec)
+        return self._sources[spec]
+
+    # ------------------------------------------------------------------ widgets
+    def _build_widgets(self, out_dir) -> None:
+        cfg = self.slam.config
+        vals = _config_values(cfg, len(self.slam.source))
+        style = {"description_width": "150px"}
+        wide = W.Layout(width="420px")
+        self.w_source = W.Text(value=self.source_spec, description="data source", style=style, layout=wide,
+                               placeholder="default, or a dataset folder / video path", continuous_update=False)
+        self.w_default = W.Button(description="default sequence", tooltip="the embedded synthetic sequence",
+                                  layout=W.Layout(width="140px"))
+        self.w_skip = W.IntSlider(value=vals["frame_skip"], min=1, max=10, description="frame skip", style=style,
+                                  layout=wide, continuous_update=False)
+        self.w_max = W.IntSlider(value=vals["max_frames"], min=1, max=max(1, math.ceil(len(self.slam.source)
+                                                                                     / cfg.frame_skip)),
+                                 description="max frames", style=style, layout=wide, continuous_update=False)
+        self.w_init = W.IntSlider(value=vals["init_frames"], min=2, max=60, description="initialization frames",
+                                  style=style, layout=wide, continuous_update=False)
+        self.w_flow = W.FloatSlider(value=vals["flow_threshold"], min=0.0, max=0.3, step=0.005,
+                                    readout_format=".3f", description="flow threshold", style=style, layout=wide,
+                                    continuous_update=False)
+        self.w_matches = W.IntSlider(value=vals["min_tracked_matches"], min=5, max=500,
+                                     description="min tracked matches", style=style, layout=wide,
+                                     continuous_update=False)
+        self.w_features = W.Dropdown(options=available_extractors(), value=vals["features"], description="extractor",
+                                     style=style, layout=wide)
+        self.w_out = W.Text(value=str(out_dir), description="output folder", style=style, layout=wide)
+        bl = W.Layout(width="96px")
+        self.b_step = W.Button(description="Step", tooltip="process one frame", icon="step-forward", layout=bl)
+        self.b_run = W.Button(description="Run", tooltip="run until paused or done", icon="play", layout=bl,
+                              button_style="success")
+        self.b_reset = W.Button(description="Reset", tooltip="apply the settings and start over", icon="refresh",
+                                layout=bl, button_style="warning")
+        self.b_save = W.Button(description="Save", tooltip="save map and trajectory to the output folder",
+                               icon="save", layout=bl)
+        self.b_load = W.Button(description="Load", tooltip="show the run saved in the output folder",
+                               icon="folder-open", layout=bl)
+        self.b_html = W.Button(description="Export HTML", tooltip="the 3D view as one HTML file (output folder)",
+                               icon="file", layout=W.Layout(width="120px"))
+        self.w_pending = W.HTML(layout=W.Layout(min_height="22px"))
+        self.w_status = W.HTML(layout=W.Layout(min_height="22px"))
+
+        # visualization settings
+        vs = self.view.settings
+        vstyle = {"description_width": "110px"}
+        vl = W.Layout(width="330px")
+        self.v_bg = W.ColorPicker(value=vs.background, description="background", concise=False, style=vstyle,
+                                  layout=vl)
+        self.v_path = W.Checkbox(value=vs.show_path, description="path", indent=False, layout=W.Layout(width="80px"))
+        self.v_kf = W.Checkbox(value=vs.show_keyframes, description="keyframes", indent=False,
+                               layout=W.Layout(width="100px"))
+        self.v_cur = W.Checkbox(value=vs.show_current, description="current frame", indent=False,
+                                layout=W.Layout(width="120px"))
+        self.v_pts = W.Checkbox(value=vs.show_points, description="points", indent=False,
+                                layout=W.Layout(width="80px"))
+        self.v_dirs = W.Checkbox(value=vs.show_directions, description="viewing directions", indent=False,
+                                 layout=W.Layout(width="150px"))
+        self.v_fscale = W.FloatLogSlider(value=vs.frustum_scale, base=10, min=-1, max=1, step=0.05,
+                                         description="frustum scale", style=vstyle, layout=vl,
+                                         continuous_update=False)
+        self.v_psize = W.FloatLogSlider(value=vs.point_size, base=10, min=-1, max=1, step=0.05,
+                                        description="point size", style=vstyle, layout=vl, continuous_update=False)
+        self.v_track = W.IntSlider(value=-1, min=-1, max=0, description="track point id", style=vstyle, layout=vl,
+                                   continuous_update=False)
+        self.v_track_info = W.HTML()
+        self.v_clip_on = W.Checkbox(value=False, description="clip to keyframes", indent=False,
+                                    layout=W.Layout(width="140px"))
+        self.v_clip = W.IntRangeSlider(value=(0, 1), min=0, max=1, description="", layout=W.Layout(width="300px"),
+                                       continuous_update=False)
+        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="130px"))
+
+        # frame view
+        self.f_kf = W.Image(format="jpeg", layout=W.Layout(width="240px"))
+        self.f_kf_label = W.HTML()
+        self.f_cur = W.Image(format="jpeg", layout=W.Layout(width=f"{self.frame_width}px"))
+        self.f_step = W.HTML()
+        self.f_summary = W.HTML()
+        self.m_kf1 = W.Dropdown(description="keyframes", options=[], layout=W.Layout(width="200px"),
+                                style={"description_width": "70px"})
+        self.m_kf2 = W.Dropdown(options=[], layout=W.Layout(width="110px"))
+        self.b_matches = W.Button(description="Draw matches", icon="random", layout=W.Layout(width="130px"))
+        self.m_image = W.Image(format="jpeg", layout=W.Layout(width="640px"))
+        self.m_label = W.HTML()
+
+        self.map_html = W.HTML(self.view.iframe_html(self.map_height), layout=W.Layout(width="100%"))
+
+        controls = W.VBox([
+            W.HBox([self.w_source, self.w_default]), self.w_skip, self.w_max, self.w_init, self.w_flow,
+            self.w_matches, self.w_features, self.w_out,
+            W.HBox([self.b_step, self.b_run, self.b_reset, self.b_save, self.b_load, self.b_html]),
+            self.w_pending, self.w_status,
+        ])
+        settings = W.VBox([
+            W.HBox([self.v_bg, self.b_camera]),
+            W.HBox([self.v_pts, self.v_kf, self.v_path, self.v_cur, self.v_dirs]),
+            W.HBox([self.v_fscale, self.v_psize]),
+            W.HBox([self.v_track, self.v_track_info]),
+            W.HBox([self.v_clip_on, self.v_clip]),
+        ])
+        frame = W.VBox([W.HTML("<b>last keyframe</b>"), self.f_kf, self.f_kf_label, W.HTML("<b>current frame</b>"),
+                        self.f_cur], layout=W.Layout(width=f"{self.frame_width + 20}px"))
+        map_box = W.VBox([self.map_html, settings], layout=W.Layout(flex="1 1 auto", min_width="420px"))
+        self.widget = W.VBox([
+            controls,
+            W.HBox([map_box, frame]),
+            self.f_step, self.f_summary,
+            W.HBox([self.m_kf1, self.m_kf2, self.b_matches]), self.m_label, self.m_image,
+        ])
+        self.widget.add_class("slamkit-app")
+        for w, cls in ((self.b_step, "slamkit-step-button"), (self.b_run, "slamkit-run-button"),
+                       (self.b_reset, "slamkit-reset-button"), (self.w_flow, "slamkit-flow-threshold"),
+                       (self.w_pending, "slamkit-pending"), (self.map_html, "slamkit-map-view")):
+            w.add_class(cls)
+
+        # events
+        self.b_step.on_click(lambda _: self._guard(self.step))
+        self.b_run.on_click(lambda _: self._guard(self.toggle_run))
+        self.b_reset.on_click(lambda _: self._guard(self.reset))
+        self.b_save.on_click(lambda _: self._guard(self.save))
+        self.b_load.on_click(lambda _: self._guard(self.load))
+        self.b_html.on_click(lambda _: self._guard(self.export_html))
+        self.b_matches.on_click(lambda _: self._guard(self.draw_keyframe_matches))
+        self.b_camera.on_click(lambda _: self._guard(self.view.reset_camera))
+        self.w_default.on_click(lambda _: setattr(self.w_source, "value", DEFAULT_SOURCE))
+        self.w_source.observe(lambda _: self._guard(self._source_changed), "value")
+        self.w_skip.observe(lambda _: self._guard(self._update_max_frames), "value")
+        for w in (self.w_max, self.w_init, self.w_flow, self.w_matches, self.w_features):
+            w.observe(lambda _: self._show_pending(), "value")
+        for w in (self.v_bg, self.v_path, self.v_kf, self.v_cur, self.v_pts, self.v_dirs, self.v_fscale,
+                  self.v_psize, self.v_track, self.v_clip_on, self.v_clip):
+            w.observe(lambda _: self._guard(self._apply_view_settings), "value")
+
+    def _ipython_display_(self) -> None:
+        from IPython.display import display
+
+        display(self.widget)
+
+    def _guard(self, fn, *args):
+        """Run a widget action; show errors in the status line instead of losing them in the kernel log."""
+        try:
+            return fn(*args)
+        except SlamkitError as e:
+            self._status(f"⚠ {e}", "#b00020")
+        except Exception as e:  # noqa: BLE001 - shown to the user, with the traceback in the status tooltip
+            self._status(f"⚠ {type(e).__name__}: {e}", "#b00020")
+            self.last_error = traceback.format_exc()
+
+    def _status(self, text: str, color: str = "#333") -> None:
+        import html
+
+        self.w_status.value = f'<span style="color:{color}">{html.escape(text)}</span>'
+
+    # ------------------------------------------------------------------ pending settings
+    def pending_config(self) -> SlamConfig:
+        """The configuration the controls show (applied by :meth:`reset`); the running one is untouched."""
+        n_max = self.w_max.max
+        max_frames = None if self.w_max.value >= n_max else int(self.w_max.value)
+        return self.slam.config.with_overrides(
+            frame_skip=int(self.w_skip.value), max_frames=max_frames, init_frames=int(self.w_init.value),
+            flow_threshold=float(self.w_flow.value), min_tracked_matches=int(self.w_matches.value),
+            features=str(self.w_features.value))
+
+    def pending_changes(self) -> dict[str, tuple]:
+        """Setting -> (running value, pending value) for every control that differs from the running run."""
+        out: dict[str, tuple] = {}
+        if self.w_source.value.strip() != self.source_spec:
+            out["source"] = (self.source_spec, self.w_source.value.strip())
+        try:
+            pending = self.pending_config()
+        except SlamkitError as e:
+            return dict(out, invalid=(str(e), ""))
+        n = len(self._open(self.w_source.value.strip() or DEFAULT_SOURCE)) if "source" in out else len(
+            self.slam.source)
+        now, new = _config_values(self.slam.config, len(self.slam.source)), _config_values(pending, n)
+        for k in now:
+            if now[k] != new[k]:
+                out[k] = (now[k], new[k])
+        return out
+
+    def _show_pending(self) -> None:
+        changes = self.pending_changes()
+        if not changes:
+            self.w_pending.value = ""
+            return
+        items = ", ".join(f"{_LABELS.get(k, k)} {a} → {b}" for k, (a, b) in changes.items())
+        when = "the current run continues with its settings; " if self._running else ""
+        self.w_pending.value = (f'<span class="slamkit-pending-text" style="color:#b35900">⚠ changed: {items}. '
+                                f'{when}press <b>Reset</b> to apply (takes effect on Reset).</span>')
+
+    def _source_changed(self) -> None:
+        spec = self.w_source.value.strip() or DEFAULT_SOURCE
+        try:
+            self._open(spec)
+        except SlamkitError as e:
+            self._status(f"⚠ data source: {e}", "#b00020")
+            return
+        self._update_max_frames()
+
+    def _update_max_frames(self) -> None:
+        spec = self.w_source.value.strip() or DEFAULT_SOURCE
+        try:
+            n = len(self._open(spec))
+        except SlamkitError:
+            n = len(self.slam.source)
+        at_max = self.w_max.value >= self.w_max.max
+        new_max = max(1, math.ceil(n / int(self.w_skip.value)))
+        if new_max > self.w_max.max:
+            self.w_max.max = new_max
+            if at_max:
+                self.w_max.value = new_max
+        else:
+            self.w_max.value = min(self.w_max.value, new_max) if not at_max else new_max
+            self.w_max.max = new_max
+        self._show_pending()
+
+    # ------------------------------------------------------------------ pipeline actions
+    @property
+    def result(self) -> StepResult | None:
+        """The last step's result."""
+        return self.slam.last_result
+
+    def step(self) -> StepResult | None:
+        """Process one frame and update the views (None when the sequence is done)."""
+        if self.slam.done:
+            self._finish()
+            return None
+        local_map_before = self.slam.local_map
+        slam_map_before = self.slam.slam_map
+        result = self.slam.step()
+        self.results.append(result)
+        if result.status == "tracked":
+            self.flow_pairs = fv.tracked_matches(local_map_before, self.slam.last_features, result.cam_from_world,
+                                                 slam_map_before, self.slam.config)
+        else:
+            self.flow_pairs = (np.empty((0, 2)), np.empty((0, 2)))
+        self._after_step(result)
+        if self.slam.done:
+            self._finish()
+        return result
+
+    def run(self, max_steps: int | None = None) -> list[StepResult]:
+        """Step synchronously (``max_steps`` frames, or to the end); the widgets update as it goes."""
+        out = []
+        while not self.slam.done and (max_steps is None or len(out) < max_steps):
+            out.append(self.step())
+        return out
+
+    def toggle_run(self) -> None:
+        """The Run / Pause button."""
+        if self._running:
+            self.pause()
+        else:
+            self.start()
+
+    def start(self) -> asyncio.Task | None:
+        """Run in the background of the kernel (an asyncio task, one frame per loop turn) until paused or done."""
+        if self._running or self.slam.done:
+            return self._task
+        self._running = True
+        self._set_run_button()
+        loop = asyncio.get_event_loop()
+        self._task = loop.create_task(self._run_loop())
+        return self._task
+
+    def pause(self) -> None:
+        """Stop a background run after the current frame."""
+        self._running = False
+        self._set_run_button()
+
+    @property
+    def running(self) -> bool:
+        return self._running
+
+    async def _run_loop(self) -> None:
+        try:
+            while self._running and not self.slam.done:
+                self.step()
+                await asyncio.sleep(0)  # the kernel handles widget messages (Pause, sliders) between frames
+        except Exception as e:  # noqa: BLE001 - a background task has nobody else to tell
+            self._status(f"⚠ run stopped: {type(e).__name__}: {e}", "#b00020")
+            self.last_error = traceback.format_exc()
+        finally:
+            self._running = False
+            self._set_run_button()
+            self._show_pending()
+
+    def _set_run_button(self) -> None:
+        if self._running:
+            self.b_run.description, self.b_run.icon, self.b_run.button_style = "Pause", "pause", "info"
+        else:
+            self.b_run.description, self.b_run.icon, self.b_run.button_style = "Run", "play", "success"
+        self.b_step.disabled = self._running
+
+    def reset(self) -> None:
+        """Apply the pending settings (and data source) and start over."""
+        self.pause()
+        config = self.pending_config()
+        spec = self.w_source.value.strip() or DEFAULT_SOURCE
+        if spec != self.source_spec:
+            callbacks = self.slam.callbacks
+            self.slam = Slam(self._open(spec), config, callbacks=callbacks)
+            self.source_spec = spec
+        else:
+            self.slam.reset(config)
+        self.results.clear()
+        self.flow_pairs = (np.empty((0, 2)), np.empty((0, 2)))
+        self._reproj = float("nan")
+        self._showing_run = None
+        self.view.update(self.slam)
+        self._refresh_all()
+        self._status(f"reset: {len(self.slam)} frames of {self.source_spec} with the new settings")
+
+    def _finish(self) -> None:
+        if not self.slam.finished:
+            self.slam.finish()
+            self._reproj = self._reprojection_error()
+            self.view.update(self.slam)
+            self._refresh_all()
+            self._status("done: the last global bundle adjustment ran; Save writes the map and trajectory")
+
+    def save(self, out_dir: str | Path | None = None) -> Path:
+        """Save the current map and trajectory (``slam.save``) to the output folder."""
+        out = Path(out_dir or self.w_out.value)
+        path = self.slam.save(out)
+        self._status(f"saved to {path} (trajectory_tum.txt, sparse/, points.ply, summary.json)")
+        return path
+
+    def load(self, run_dir: str | Path | None = None) -> None:
+        """Show a saved run folder in the 3D view without rerunning it (Step / Run / Reset go back to live)."""
+        run_dir = Path(run_dir or self.w_out.value)
+        self.pause()
+        stats = self.view.load_run(run_dir)
+        self._showing_run = run_dir
+        self._refresh_view_controls()
+        self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
+        self._status(f"showing the saved run {run_dir} ({stats.points} points, {stats.keyframes} keyframes); "
+                     "Step, Run or Reset return to the live map")
+
+    def export_html(self, path: str | Path | None = None) -> Path:
+        """The 3D view as one standalone HTML file (default: ``<output folder>/map.html``)."""
+        path = Path(path or Path(self.w_out.value) / "map.html")
+        self.view.export_html(path)
+        self._status(f"3D view exported to {path}")
+        return path
+
+    def close(self) -> None:
+        """Stop a background run and the viewer's server (when this app started it)."""
+        self.pause()
+        if self._own_view:
+            self.view.close()
+        self.widget.close()
+
+    # ------------------------------------------------------------------ views
+    def _reprojection_error(self) -> float:
+        m = self.slam.slam_map
+        return m.mean_reprojection_error() if m is not None and m.num_points else float("nan")
+
+    def _summary(self) -> dict:
+        return fv.summary_numbers(self.slam, self._reproj)
+
+    def _after_step(self, result: StepResult) -> None:
+        live_again = self._showing_run is not None
+        if live_again:
+            self._showing_run = None
+        if (result.is_keyframe or result.status == "initialized" or live_again
+                or (self.slam.slam_map is not None and not self.view.shows(self.slam.slam_map))
+                or (self.slam.slam_map is None and len(self.view.keyframe_ids))):
+            if result.is_keyframe or result.status == "initialized":
+                self._reproj = self._reprojection_error()
+            self.view.update(self.slam)
+            self._refresh_view_controls()
+        else:
+            self.view.show_current(None if result.cam_from_world is None else np.linalg.inv(result.cam_from_world))
+        self._refresh_frames(result)
+        self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
+        self._show_pending()
+
+    def _refresh_all(self) -> None:
+        self._refresh_view_controls()
+        self._refresh_frames(self.slam.last_result)
+        self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
+        self._show_pending()
+
+    def _refresh_frames(self, result: StepResult | None) -> None:
+        slam = self.slam
+        m = slam.slam_map
+        kf_id = slam.last_keyframe if slam.segment is not None else -1
+        kf = m.keyframes.get(kf_id) if m is not None else None
+        if kf is not None and kf.thumbnail is not None:
+            self.f_kf.value = fv.encode_image(kf.thumbnail)
+            self.f_kf_label.value = (f'<span class="slamkit-keyframe">keyframe image id <b>{kf_id}</b> '
+                                     f'(frame {kf.frame_index}, t={kf.timestamp:.3f} s)</span>')
+        else:
+            self.f_kf.value = fv.encode_image(fv.placeholder("no keyframe yet", (240, 180)))
+            self.f_kf_label.value = "initializing" if result is not None else ""
+        frame = slam.last_frame
+        if frame is not None and result is not None and frame.index == result.frame_index:
+            ref, cur = self.flow_pairs
+            img = fv.draw_flow(frame.color, ref, cur, width=self.frame_width)
+            self.f_step.value = fv.step_html(result, slam.config, drawn=len(cur) if len(cur) else None)
+        else:
+            img = fv.placeholder("press Step or Run", (self.frame_width, self.frame_width * 3 // 4))
+            self.f_step.value = fv.step_html(None, slam.config)
+        self.f_cur.value = fv.encode_image(img)
+
+    def _refresh_view_controls(self) -> None:
+        """Ranges of the track and clip sliders and the keyframe lists follow the map."""
+        ids = self.view.keyframe_ids
+        pids = self.view.point_ids()
+        with self._holding_view_events():
+            self.v_track.max = int(pids[-1]) if len(pids) else 0
+            if len(ids):
+                lo, hi = int(ids[0]), int(ids[-1])
+                was_full = self.v_clip.value[1] >= self.v_clip.max
+                self.v_clip.max = max(hi, lo + 1)
+                self.v_clip.min = lo
+                if was_full or not self.v_clip_on.value:
+                    self.v_clip.value = (lo, max(hi, lo + 1))
+            opts = [int(i) for i in ids]
+            if list(self.m_kf1.options) != opts:
+                v1, v2 = self.m_kf1.value, self.m_kf2.value
+                self.m_kf1.options = opts
+                self.m_kf2.options = opts
+                if opts:
+                    self.m_kf1.value = v1 if v1 in opts else opts[max(0, len(opts) - 2)]
+                    self.m_kf2.value = v2 if v2 in opts else opts[-1]
+
+    @contextlib.contextmanager
+    def _holding_view_events(self):
+        self._hold = True
+        try:
+            yield
+        finally:
+            self._hold = False
+
+    def _apply_view_settings(self) -> None:
+        if getattr(self, "_hold", False):
+            return
+        clip = tuple(int(v) for v in self.v_clip.value) if self.v_clip_on.value else None
+        track = int(self.v_track.value)
+        pids = self.view.point_ids()
+        if track >= 0 and len(pids):
+            pos = min(np.searchsorted(pids, track), len(pids) - 1)
+            snapped = int(pids[pos])
+            self.v_track_info.value = (f"point {snapped}" + (f" (next existing id after {track})"
+                                                             if snapped != track else ""))
+            track = snapped
+        else:
+            self.v_track_info.value = "" if track < 0 else "no map points"
+        self.view.configure(background=self.v_bg.value, show_path=self.v_path.value, show_keyframes=self.v_kf.value,
+                            show_current=self.v_cur.value, show_points=self.v_pts.value,
+                            show_directions=self.v_dirs.value, frustum_scale=float(self.v_fscale.value),
+                            point_size=float(self.v_psize.value), track_point=track, clip=clip)
+        if track >= 0:
+            self.v_track_info.value += f": seen by {self.view.scene_counts().get('track', 0)} keyframes"
+        self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
+
+    def view_settings(self) -> ViewSettings:
+        return self.view.settings
+
+    def draw_keyframe_matches(self, image_id1: int | None = None, image_id2: int | None = None) -> np.ndarray | None:
+        """Draw the matches (shared 3D points) between two keyframes into the match image; returns it."""
+        m = self.slam.slam_map
+        a = int(image_id1 if image_id1 is not None else self.m_kf1.value or -1)
+        b = int(image_id2 if image_id2 is not None else self.m_kf2.value or -1)
+        if m is None or a not in m.keyframes or b not in m.keyframes:
+            self.m_label.value = "choose two keyframes of the live map"
+            return None
+        k1, k2 = m.keyframes[a], m.keyframes[b]
+        src = self.slam.source
+        im1 = src[int(self.slam.indices[k1.frame_index])].color
+        im2 = src[int(self.slam.indices[k2.frame_index])].color
+        pairs = fv.keyframe_matches(m, a, b)
+        img = fv.draw_matches(im1, k1.features.keypoints, im2, k2.features.keypoints, pairs, width=960)
+        self.m_image.value = fv.encode_image(img)
+        self.m_label.value = (f"keyframes {a} (frame {k1.frame_index}) and {b} (frame {k2.frame_index}): "
+                              f"{len(pairs)} keypoints observe the same 3D points"
+                              + (" (300 drawn)" if len(pairs) > 300 else ""))
+        return img
+
+
+__all__ = ["SlamApp", "DEFAULT_SOURCE"]
