@@ -544,15 +544,22 @@ def value_noise(h: int, w: int, rng: np.random.Generator, cell: int) -> np.ndarr
 def fractal_noise(h: int, w: int, rng: np.random.Generator, largest: int = 256, smallest: int = 2,
                   roughness: float = 0.6) -> np.ndarray:
     """(h, w) float32 multi-octave noise normalised to [0, 1]: structure at every scale from ``largest`` to
-    ``smallest`` texels, octave amplitudes falling as ``roughness ** octave``."""
-    acc = np.zeros((h, w), dtype=np.float32)
-    cell, amp = largest, 1.0
-    while cell >= smallest:
-        acc += amp * value_noise(h, w, rng, cell)
+    ``smallest`` texels, octave amplitudes falling as ``roughness ** octave``. Built coarse to fine (each
+    octave's random grid is added to the upsampled sum of the coarser ones), so it costs about one
+    full-size interpolation."""
+    import cv2
+
+    cell, amp = max(int(largest), 1), 1.0
+    acc = rng.random((-(-h // cell) + 1, -(-w // cell) + 1), dtype=np.float32)
+    while cell // 2 >= max(int(smallest), 1):
         cell //= 2
         amp *= roughness
+        shape = (-(-h // cell) + 1, -(-w // cell) + 1)
+        acc = cv2.resize(acc, (shape[1], shape[0]), interpolation=cv2.INTER_CUBIC)
+        acc += np.float32(amp) * rng.random(shape, dtype=np.float32)
+    acc = cv2.resize(acc, (acc.shape[1] * cell, acc.shape[0] * cell), interpolation=cv2.INTER_CUBIC)[:h, :w]
     lo, hi = float(acc.min()), float(acc.max())
-    return (acc - lo) / max(hi - lo, 1e-6)
+    return (acc - lo) * np.float32(1.0 / max(hi - lo, 1e-6))
 
 
 def _colour(rng: np.random.Generator, lo: int = 20, hi: int = 235) -> tuple[int, int, int]:
@@ -567,11 +574,15 @@ def base_surface(h: int, w: int, rng: np.random.Generator, colour, contrast: flo
                  grain: float = 0.06, largest: int = 128) -> np.ndarray:
     """(h, w, 3) uint8 BGR painted/plastered surface: ``colour`` modulated by multi-scale noise (relative
     ``contrast``) and a fine grain."""
-    n = fractal_noise(h, w, rng, largest=largest, smallest=4, roughness=0.6) - 0.5
-    g = value_noise(h, w, rng, 1) - 0.5
-    f = 1.0 + 2 * contrast * n + 2 * grain * g
-    img = np.asarray(colour, dtype=np.float32)[None, None, :] * f[..., None]
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    import cv2
+
+    f = fractal_noise(h, w, rng, largest=largest, smallest=4, roughness=0.6)
+    f *= np.float32(2 * contrast)
+    g = value_noise(h, w, rng, 1)
+    g *= np.float32(2 * grain)
+    f += g
+    f += np.float32(1.0 - contrast - grain)  # mean 1
+    return cv2.merge([cv2.convertScaleAbs(f, alpha=float(c)) for c in colour])  # rounded, saturated
 
 
 def _patch_draw(canvas: np.ndarray, box: tuple[int, int, int, int], alpha: float, draw) -> None:
@@ -720,7 +731,7 @@ def wood(h: int, w: int, rng: np.random.Generator, plank: int, vertical: bool = 
             img[r0:r1, c0:c0 + 2] *= 0.35  # joint
             x += length
         img[r0:r0 + 2] *= 0.3  # seam between planks
-    return np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    return cv2.convertScaleAbs(img)  # rounded, saturated (values are >= 0)
 
 
 def books(h: int, w: int, rng: np.random.Generator, tpm: float) -> np.ndarray:
@@ -771,7 +782,7 @@ def _bake_lighting(quad: Quad, img: np.ndarray, lights, ambient: float) -> np.nd
         shade += power * cos / (1.0 + (r / 2.5) ** 2)
     h, w = img.shape[:2]
     shade = cv2.resize(np.clip(shade, 0.3, 1.3).astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-    return np.clip(img * shade[..., None] + 0.5, 0, 255).astype(np.uint8)
+    return cv2.multiply(img, cv2.merge([shade, shade, shade]), dtype=cv2.CV_8U)  # rounded, saturated
 
 
 # ----------------------------------------------------------------------------------------------------------

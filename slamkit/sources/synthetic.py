@@ -24,7 +24,7 @@ plus the motion's own keyword parameters (``speed`` in metres per frame, ``radiu
 
 World frame: z up, metres, floor at z = 0; poses are camera-to-world with OpenCV camera axes.
 
-The default sequence is cached in ``$SLAMKIT_CACHE/default-v1/`` (or ``$XDG_CACHE_HOME/slamkit/...``,
+The default sequence is cached in ``$SLAMKIT_CACHE/default-v2/`` (or ``$XDG_CACHE_HOME/slamkit/...``,
 else ``~/.cache/slamkit/...``) in TUM RGB-D layout (``rgb/*.jpg``, ``rgb.txt``, ``groundtruth.txt``)
 plus ``camera.json``; it is written atomically (rendered into a temporary sibling, then renamed), and the
 folder name carries a version that changes whenever the renderer or the scene changes.
@@ -56,7 +56,7 @@ log = logging.getLogger(__name__)
 DEFAULT_CAMERA = Intrinsics(640, 480, 500.0, 500.0, 319.5, 239.5)
 """Camera of the synthetic sequences: 640x480 pinhole, fx = fy = 500 px (65 x 51 degrees), no distortion."""
 
-DEFAULT_VERSION = "default-v1"
+DEFAULT_VERSION = "default-v2"
 """Name of the cache folder of the default sequence; change it whenever the renderer or scene changes."""
 
 DEFAULT_FRAMES = 360
@@ -497,6 +497,9 @@ def ensure_default_sequence() -> Path:
             stale = Path(tempfile.mkdtemp(prefix=f".{folder.name}.stale.", dir=root))
             os.replace(folder, stale / folder.name)
             shutil.rmtree(stale, ignore_errors=True)
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o777 & ~mask)  # mkdtemp made it private; the cache is an ordinary folder
         try:
             os.rename(tmp, folder)
         except OSError:
