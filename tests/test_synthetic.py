@@ -3,9 +3,7 @@ quality for ORB, determinism, motions, the cached default sequence and spec pars
 
 from __future__ import annotations
 
-import os
 import time
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -124,6 +122,7 @@ def test_depth_buffer_matches_plane_equation(room):
     floor = r.quad == names.index("floor")
     wall = r.quad == names.index("wall_front")
     assert floor.sum() > 5000 and wall.sum() > 20000
+    assert (rays[..., 2][floor] < 0).all()  # the part of the floor behind the camera is clipped away
     z_floor = -C[2] / rays[..., 2]  # ray C + z * ray meets z = 0 (rays have unit camera z)
     z_wall = (ROOM_Y - C[1]) / rays[..., 1]
     np.testing.assert_allclose(r.depth[floor], z_floor[floor], rtol=1e-12)
@@ -263,6 +262,28 @@ def test_source_frame_selection_and_timestamps():
     np.testing.assert_array_equal(frame.gt_pose, full.gt_poses[6])
     half = open_synthetic("synthetic:rotation?frames=5&scale=0.5")
     assert half[0].gray.shape == (240, 320) and half.camera == K.scaled(0.5)
+
+
+def test_source_from_any_scene_and_poses():
+    """SyntheticSource renders any scene along any poses; its exact depth and 3D points agree with the
+    projection of the poses."""
+    quad = Quad("checker", (-1.0, 2.0, 1.0), (2.0, 0.0, 0.0), (0.0, 0.0, -2.0), checker_texture(8, 16))
+    poses = np.stack([look_at((0.1 * k, 0.0, 0.0), (0.1 * k, 2.0, 0.0)) for k in range(5)])
+    src = SyntheticSource(Scene([quad]), poses, K.scaled(0.5), fps=10, seed=1, max_frames=4)
+    assert len(src) == 4 and src.camera.width == 320
+    np.testing.assert_allclose(src.timestamps, [0.0, 0.1, 0.2, 0.3])
+    np.testing.assert_array_equal(src.gt_poses, poses[:4])
+    assert "SyntheticSource" in repr(src) and src[3].gray.shape == (240, 320)
+    depth = src.depth(2)
+    np.testing.assert_allclose(depth[np.isfinite(depth)], 2.0, rtol=1e-12)  # fronto-parallel, 2 m away
+    px = np.array([[10.5, 20.25], [160.0, 120.0], [250.75, 200.5]])
+    pts = src.points(2, px)
+    np.testing.assert_allclose(pts[:, 1], 2.0, atol=1e-12)
+    np.testing.assert_allclose(project(poses[2], src.camera, pts)[0], px, atol=1e-9)
+    r = src.rendering(2)
+    assert (r.quad == 0).sum() + (r.quad == -1).sum() == r.quad.size
+    with pytest.raises(ConfigError, match="poses"):
+        SyntheticSource(Scene([quad]), np.zeros((0, 4, 4)))
 
 
 # ---------------------------------------------------------------------------------------------- the default sequence

@@ -236,7 +236,11 @@ class Rendering:
 
 @dataclass(eq=False)
 class Scene:
-    """A set of textured quads rendered with a z-buffer. ``background`` is the BGR colour of empty pixels."""
+    """A set of textured quads rendered with a z-buffer.
+
+    ``background`` is the BGR colour of pixels that see no quad; ``lod_bias`` shifts the mipmap level;
+    ``bounds`` is an optional (2, 3) box (min corner, max corner; metres) holding the scene, e.g. a room.
+    """
 
     quads: list[Quad]
     name: str = "scene"

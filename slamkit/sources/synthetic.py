@@ -49,7 +49,7 @@ from ..camera import Intrinsics
 from ..errors import ConfigError, SourceError
 from ..types import Trajectory
 from .base import FrameSource, ImageListSource, select
-from .scene import ROOM_X, ROOM_Y, Rendering, Scene, default_room, look_at
+from .scene import ROOM_Y, Rendering, Scene, default_room, look_at
 
 log = logging.getLogger(__name__)
 
@@ -288,8 +288,9 @@ class SyntheticSource(FrameSource):
             # an offset drawn from (seed, frame id) -- as random as fresh noise at a fraction of the cost
             h, w = img.shape[:2]
             if self._noise_field is None:
-                field = np.random.default_rng([self.seed, 0x6E6F697365]).standard_normal((h + _NOISE_PAD, w + _NOISE_PAD, 3))
-                self._noise_field = np.round(field * self.noise).astype(np.int16)
+                rng = np.random.default_rng([self.seed, 0x6E6F697365])
+                normal = rng.standard_normal((h + _NOISE_PAD, w + _NOISE_PAD, 3))
+                self._noise_field = np.round(normal * self.noise).astype(np.int16)
             dy, dx = np.random.default_rng([self.seed, int(self.frame_ids[i])]).integers(0, _NOISE_PAD, 2)
             img = cv2.add(img, self._noise_field[dy:dy + h, dx:dx + w], dtype=cv2.CV_8U)  # saturating
         return img
