@@ -177,6 +177,8 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     second[has_second] = dist[idx_first[has_second] + 1]
     best = idx_first[(dist[idx_first] < cfg.ratio * second) | ~has_second]
     pt, kp, dist = pt[best], kp[best], dist[best]
+    if len(pt) == 0:
+        return np.empty((0, 2), np.int64)
     # one map point per keypoint: keep the closest descriptor
     o = np.lexsort((dist, kp))
     pt, kp = pt[o], kp[o]

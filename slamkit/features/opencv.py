@@ -9,21 +9,30 @@ import numpy as np
 from .base import Features, register_extractor
 
 
-def _grid_cap(kps, n_cells: tuple[int, int], shape: tuple[int, int], per_cell: int):
-    """Keep at most ``per_cell`` strongest keypoints per image cell, so features cover the whole image."""
-    if per_cell <= 0 or len(kps) == 0:
+def _grid_cap(kps, n_cells: tuple[int, int], shape: tuple[int, int], total: int):
+    """Keep the ``total`` strongest keypoints spread over the image: at most total / cells per grid cell
+    first, then the strongest of the rest until ``total`` (empty cells, e.g. sky, leave their share)."""
+    if total <= 0 or len(kps) <= total:
         return kps
     h, w = shape
     gx, gy = n_cells
+    per_cell = int(np.ceil(total / (gx * gy)))
     xy = np.array([k.pt for k in kps], dtype=np.float32)
     resp = np.array([k.response for k in kps], dtype=np.float32)
     cell = np.minimum((xy[:, 1] * gy / h).astype(np.int64), gy - 1) * gx + np.minimum(
         (xy[:, 0] * gx / w).astype(np.int64), gx - 1)
     order = np.lexsort((-resp, cell))
     c = cell[order]
-    rank = np.arange(len(c)) - np.searchsorted(c, c, side="left")
-    keep = np.sort(order[rank < per_cell])
-    return [kps[i] for i in keep]
+    rank = np.empty(len(c), np.int64)
+    rank[order] = np.arange(len(c)) - np.searchsorted(c, c, side="left")
+    first = np.flatnonzero(rank < per_cell)
+    if len(first) < total:
+        rest = np.flatnonzero(rank >= per_cell)
+        rest = rest[np.argsort(-resp[rest], kind="stable")][: total - len(first)]
+        first = np.concatenate([first, rest])
+    elif len(first) > total:
+        first = first[np.argsort(-resp[first], kind="stable")][:total]
+    return [kps[i] for i in np.sort(first)]
 
 
 @register_extractor("orb")
@@ -52,8 +61,7 @@ class OrbExtractor:
 
     def extract(self, gray: np.ndarray) -> Features:
         kps = self._orb.detect(gray, None)
-        per_cell = int(np.ceil(self.num_features / (self.grid[0] * self.grid[1])))
-        kps = _grid_cap(list(kps), self.grid, gray.shape[:2], per_cell)
+        kps = _grid_cap(list(kps), self.grid, gray.shape[:2], self.num_features)
         kps, desc = self._orb.compute(gray, kps)
         return _to_features(kps, desc, binary=True)
 

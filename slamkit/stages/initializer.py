@@ -35,8 +35,9 @@ class InitializerConfig:
     """Size of the initialization window N (frames)."""
     min_matches: int = 100
     """Inlier matches a pair needs."""
-    min_tri_angle_deg: float = 2.0
-    """Median triangulation angle a pair needs, degrees."""
+    min_tri_angle_deg: float = 1.5
+    """Parallax a match needs to count towards ``min_points``, degrees (ORB-SLAM's criterion; the median
+    angle would reject forward motion, where points near the focus of expansion have none)."""
     min_inlier_ratio: float = 0.9
     """first_inliers: essential-matrix inliers / matches a pair needs."""
     min_points: int = 80
@@ -85,6 +86,16 @@ class InitResult:
     @property
     def initialized(self) -> bool:
         return self.status == "initialized"
+
+
+def parallax_deg(x1: np.ndarray, x2: np.ndarray, R_2from1: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Triangulation angle (degrees) of matches x1 <-> x2 (N, 2) pixels: the angle between the viewing rays
+    of both cameras expressed in camera 1 (rotation compensated; independent of the baseline length)."""
+    Kinv = np.linalg.inv(K)
+    r1 = np.c_[x1, np.ones(len(x1))] @ Kinv.T
+    r2 = (np.c_[x2, np.ones(len(x2))] @ Kinv.T) @ R_2from1  # R^T r2, row-wise
+    cos = np.einsum("ij,ij->i", r1, r2) / (np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 class Initializer:
@@ -190,9 +201,13 @@ class Initializer:
         ratio = len(inl) / len(matches)
         if ratio < need_ratio:
             return InitResult("failed", f"inlier ratio {ratio:.2f} < {need_ratio:g}")
-        angle = math.degrees(tvg.tri_angle)
-        if angle < c.min_tri_angle_deg:
-            return InitResult("failed", f"triangulation angle {angle:.2f} deg < {c.min_tri_angle_deg:g}")
+        parallax = parallax_deg(fa.keypoints[inl[:, 0]], fb.keypoints[inl[:, 1]], tvg.cam2_from_cam1.rotation.matrix(),
+                                self.camera.K)
+        n_good = int((parallax >= c.min_tri_angle_deg).sum())
+        angle = float(np.median(parallax))
+        if n_good < c.min_points:
+            return InitResult("failed", f"{n_good} matches with parallax >= {c.min_tri_angle_deg:g} deg "
+                                        f"< {c.min_points} (median {angle:.2f} deg)")
         slam_map = SlamMap(self.camera)
         ia = slam_map.add_image(fa.index, fa.timestamp, fa.keypoints, fa.features, fa.colors, fa.thumbnail)
         ib = slam_map.add_image(fb.index, fb.timestamp, fb.keypoints, fb.features, fb.colors, fb.thumbnail)
@@ -208,7 +223,8 @@ class Initializer:
         if n_points < c.min_points:
             return InitResult("failed", f"{n_points} map points after BA < {c.min_points}")
         return InitResult("initialized", f"frames {fa.index} and {fb.index}: {len(inl)} inliers, "
-                                         f"triangulation angle {angle:.1f} deg, {n_points} points",
+                                         f"{n_good} with parallax >= {c.min_tri_angle_deg:g} deg (median "
+                                         f"{angle:.1f} deg), {n_points} points",
                           slam_map, fa.index, fb.index, angle, n_points)
 
     @staticmethod

@@ -355,7 +355,10 @@ class SlamApp:
             return self._task
         self._running = True
         self._set_run_button()
-        loop = asyncio.get_event_loop()
+        try:
+            loop = asyncio.get_running_loop()  # the kernel's loop (widget callbacks run inside it)
+        except RuntimeError:
+            loop = asyncio.get_event_loop()
         self._task = loop.create_task(self._run_loop())
         return self._task
 

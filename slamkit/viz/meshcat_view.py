@@ -15,8 +15,8 @@ keyframes and the posed frames' path) and, on every :meth:`MapView.update`, send
 - Frustums, path and viewing directions are one ``LineSegments`` object each (thousands of vertices, a few
   kB), re-sent when the keyframes move; the current frame is a fixed frustum moved by ``set_transform``.
 
-Colours: recency from green (first) through yellow to red (last), by timestamp, for frustums, path and
-viewing directions alike; the current frame is blue; the selected track is magenta. The map is shown in a
+Colours: recency from green (first keyframe) through yellow to red (last keyframe), by timestamp, for
+frustums, path and viewing directions alike; the current frame is blue; the selected track is magenta. The map is shown in a
 display frame (x right, y forward, z up of the first keyframe's camera) centred and scaled so it spans
 about six units: "Reset camera" refits it and puts the viewer's camera back; nothing else is re-sent.
 
@@ -331,7 +331,8 @@ class MapView:
     started and owned (stopped by :meth:`close`). ``full_read_points``: maps up to this many points are read
     whole on every update (exact and cheap); above it only the points of new or moved keyframes are read.
     ``move_tolerance``: a point group is re-sent when one of its points moved more than this fraction of the
-    map extent (or was added or removed).
+    map extent (or was added or removed). ``name``: the scene path of this view's objects (two views sharing
+    a server need different names; background and viewer camera are shared).
 
     >>> view = MapView()                    # doctest: +SKIP
     >>> slam.callbacks.append(view.on_step) # redraw after every keyframe (and move the current frame)
@@ -339,14 +340,14 @@ class MapView:
     """
 
     def __init__(self, vis=None, settings: ViewSettings | None = None, *, full_read_points: int = 20_000,
-                 move_tolerance: float = 1e-4, server: MeshcatServer | None = None):
+                 move_tolerance: float = 1e-4, server: MeshcatServer | None = None, name: str = "slamkit"):
         self._server: MeshcatServer | None = None
         if vis is None:
             if server is None:
                 server = self._server = MeshcatServer()
             vis = server.visualizer()
         self.vis = vis
-        self.root = vis["slamkit"]
+        self.root = vis[name]
         self.settings = (settings or ViewSettings()).validate()
         self.full_read_points = int(full_read_points)
         self.move_tolerance = float(move_tolerance)
@@ -354,6 +355,8 @@ class MapView:
         self.closed = False
         self._sent_bytes = 0
         self._objects = 0
+        self.objects_sent_total = 0
+        """Objects (set_object commands) sent since the view was created."""
         self._reset_state()
         self._send_scene_settings()
 
@@ -419,6 +422,7 @@ class MapView:
     def _send(self, node, obj) -> None:
         node.set_object(obj)
         self._objects += 1
+        self.objects_sent_total += 1
 
     def _points_object(self, xyz: np.ndarray, rgb: np.ndarray, size: float):
         pos = np.ascontiguousarray(xyz, np.float32).T  # 3xN (F-contiguous view: packed without a copy)
@@ -645,7 +649,7 @@ class MapView:
             self._send_chunks(set(self._chunks) | set(self._intro.tolist()))
         elif new.clip != old.clip:
             self._send_chunks({k for k in set(self._intro.tolist()) | set(self._chunks)
-                               if self._in_clip(k, old.clip) != self._in_clip(k, new.clip)})
+                               if self._within(k, old.clip) != self._within(k, new.clip)})
         if new.frustum_scale != old.frustum_scale or new.clip != old.clip:
             self._send_cameras()
             self._send_current_geometry()
@@ -752,9 +756,12 @@ class MapView:
         """In viewer units (point sizes ignore the scale of the ``/slamkit`` transform)."""
         return DISPLAY_EXTENT / 250.0 * self.settings.point_size
 
-    def _in_clip(self, k: int, clip=None, use_settings: bool = True) -> bool:
-        clip = self.settings.clip if (clip is None and use_settings) else clip
+    @staticmethod
+    def _within(k: int, clip: tuple[int, int] | None) -> bool:
         return clip is None or clip[0] <= k <= clip[1]
+
+    def _in_clip(self, k: int) -> bool:
+        return self._within(k, self.settings.clip)
 
     def _send_chunks(self, keys: set[int]) -> tuple[int, int, int]:
         """Send the point groups ``keys`` as they are in the store (delete the empty or clipped ones)."""
@@ -800,11 +807,12 @@ class MapView:
         return self._kf_world_from_cam()[:, :3, 3] if len(self._kf_pose) else np.empty((0, 3))
 
     def _time_fractions(self, times: np.ndarray) -> np.ndarray:
-        allt = np.concatenate([self._kf_times, self._path_t])
-        if len(allt) == 0:
+        """0 at the first keyframe, 1 at the last (path frames outside that span are clipped to 0 / 1)."""
+        span = self._kf_times if len(self._kf_times) >= 2 else np.concatenate([self._kf_times, self._path_t])
+        if len(span) == 0:
             return np.zeros(len(times))
-        t0, t1 = float(allt.min()), float(allt.max())
-        return (times - t0) / (t1 - t0) if t1 > t0 else np.ones(len(times))
+        t0, t1 = float(span.min()), float(span.max())
+        return np.clip((times - t0) / (t1 - t0), 0, 1) if t1 > t0 else np.ones(len(times))
 
     def _frustum_vertices(self, world_from_cam: np.ndarray, depth: float) -> np.ndarray:
         """(K, 4, 4) poses -> (K * 16, 3) line-segment vertices of the frustums."""
