@@ -11,7 +11,8 @@ explains the renderer). Specs understood by :func:`open_synthetic` (and by ``ope
 
 Motions (:data:`MOTIONS`): ``sideways``, ``forward``, ``orbit``, ``rotation`` (pure rotation, zero
 baseline), ``loop`` (returns exactly to its start), ``handheld`` (smooth random motion) and ``default``
-(the motion of the default sequence, rendered live). Parameters of every motion:
+(the motion of the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence
+before JPEG compression). Parameters of every motion:
 
     frames=N     number of frames (>= 2; each motion has its own default)
     seed=S       integer seed of random motions and of the image noise (default 0)
