@@ -387,8 +387,7 @@ def test_incremental_update_sends_only_changed_groups():
         assert st.chunks_sent == 3, st
         assert view.scene_counts()["points"] == rec.num_points3D() == 12 * 50 - 1
         for p in moved[:5]:
-            row = np.searchsorted(view.point_ids(), p)
-            assert np.allclose(view._xyz[row], rec.point3D(p).xyz, atol=1e-6)
+            assert np.allclose(view.point_positions([p])[0], rec.point3D(p).xyz, atol=1e-6)
         # a sub-tolerance move is not sent (and not forgotten: what is shown stays what was sent)
         rec.frame(12).rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([-1.26, 0.0, 0.0]))
         p = moved[0]
@@ -400,6 +399,13 @@ def test_incremental_update_sends_only_changed_groups():
         rec.delete_point3D(victim)
         st = view.show(_state(rec, key))
         assert view.scene_counts()["points"] == rec.num_points3D() and st.chunks_sent == 1
+        # tombstones of deleted points compact away without changing what is shown
+        before = view.point_ids(), view.point_positions(view.point_ids())
+        view._compact()
+        assert np.array_equal(view.point_ids(), before[0])
+        assert np.array_equal(view.point_positions(before[0]), before[1])
+        st = view.show(_state(rec, key))
+        assert st.chunks_sent == 0 and view.scene_counts()["points"] == rec.num_points3D()
         # another map (new segment / reset): everything is sent again
         rec2, _ = _synthetic_map(4, 20, seed=1)
         st = view.show(_state(rec2, object()))

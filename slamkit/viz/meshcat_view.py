@@ -25,7 +25,6 @@ Geometry goes to meshcat as 3xN float32 (positions and colours in [0, 1]); ``Nx3
 
 from __future__ import annotations
 
-import colorsys
 import contextlib
 import os
 import tempfile
@@ -65,9 +64,12 @@ _FRUSTUM_EDGES = [(0, 1), (0, 2), (0, 3), (0, 4), (1, 2), (2, 3), (3, 4), (4, 1)
 
 def recency_colors(fractions: np.ndarray) -> np.ndarray:
     """(N,) values in [0, 1] (0 = first, 1 = last) -> (N, 3) float32 RGB in [0, 1], green -> yellow -> red."""
-    f = np.clip(np.nan_to_num(np.asarray(fractions, np.float64)), 0.0, 1.0)
-    out = np.array([colorsys.hsv_to_rgb((1.0 - x) / 3.0, 1.0, 0.95) for x in f], np.float32).reshape(-1, 3)
-    return out
+    f = np.clip(np.nan_to_num(np.asarray(fractions, np.float64).reshape(-1)), 0.0, 1.0)
+    # hue from 120 (green) to 0 degrees (red) at full saturation: red rises first, then green falls
+    v = 0.95
+    r = np.where(f < 0.5, 2 * f, 1.0) * v
+    g = np.where(f < 0.5, 1.0, 2 * (1 - f)) * v
+    return np.stack([r, g, np.zeros_like(f)], axis=1).astype(np.float32)
 
 
 def hex_to_rgb255(color: str) -> list[int]:
@@ -233,7 +235,7 @@ class UpdateStats:
 
 def _observed_ids(image: pycolmap.Image) -> np.ndarray:
     """(M,) int64 ids of the 3D points an image observes."""
-    return np.fromiter((p.point3D_id for p in image.get_observation_points2D()), np.int64)
+    return np.array([p.point3D_id for p in image.get_observation_points2D()], np.int64)
 
 
 def _read_points(rec: pycolmap.Reconstruction, ids: np.ndarray, with_color: np.ndarray | None = None
@@ -373,12 +375,15 @@ class MapView:
         self._pid = np.empty(0, np.int64)
         self._xyz = np.empty((0, 3), np.float32)
         self._rgb = np.empty((0, 3), np.uint8)
-        self._intro = np.empty(0, np.int64)
+        self._intro = np.empty(0, np.int64)  # introducing keyframe; -1 = deleted (a tombstone)
+        self._n_dead = 0
         self._obs: dict[int, np.ndarray] = {}
         self._chunks: dict[int, int] = {}  # introducing keyframe -> points in the scene
         self._fit: tuple[np.ndarray, float] | None = None  # (centre (3,), map extent)
         self._camera: tuple[float, float, float, float, int, int] | None = None
         self._scene: dict[str, int] = {}
+        self._directions_stale = False
+        self._current_shown: bool | None = None
 
     def close(self) -> None:
         """Stop the server this view started (a view drawing into a given ``vis`` leaves it running)."""
@@ -498,17 +503,14 @@ class MapView:
         self._camera = self._camera_of(rec, state.keyframe_ids)
 
         # ---- keyframes: which are new or moved
+        t_read = time.perf_counter()
         ids = state.keyframe_ids
-        poses = np.array([rec.image(int(i)).cam_from_world().matrix() for i in ids]).reshape(-1, 3, 4)
-        old = {int(k): j for j, k in enumerate(self._kf_ids)}
-        moved = []
-        new_kf = []
-        for j, k in enumerate(ids.tolist()):
-            o = old.get(k)
-            if o is None:
-                new_kf.append(k)
-            elif not np.array_equal(poses[j], self._kf_pose[o]):
-                moved.append(k)
+        poses = np.array([rec.image(i).cam_from_world().matrix() for i in ids.tolist()]).reshape(-1, 3, 4)
+        found, rows = _lookup(ids, self._kf_ids)
+        moved_mask = np.zeros(len(ids), bool)
+        moved_mask[found] = np.any(poses[found] != self._kf_pose[rows[found]], axis=(1, 2))
+        new_kf = ids[~found].tolist()
+        moved = ids[moved_mask].tolist()
         dirty = new_kf + moved
         kf_changed = bool(dirty) or len(ids) != len(self._kf_ids) or not np.array_equal(
             state.keyframe_times, self._kf_times)
@@ -516,38 +518,39 @@ class MapView:
         first_new = min(new_kf) if new_kf else (int(ids[-1]) if len(ids) else 0)
         newest = int(ids[-1]) if len(ids) else 0
         st.keyframes, st.dirty_keyframes = len(ids), len(dirty)
+        many_moved = len(moved) > max(8, len(ids) // 2)
 
         # ---- points: read what can have changed
-        t_read = time.perf_counter()
         n_points = rec.num_points3D()
-        full = (new_map or n_points <= self.full_read_points or len(moved) > max(8, len(ids) // 2))
-        known_ids = self._pid
+        full = new_map or n_points <= self.full_read_points or many_moved
         if full:
             st.mode = "full"
             r_ids, r_xyz, r_rgb = _read_all_points(rec)
-            is_known = _isin_sorted(r_ids, known_ids)
+            is_known, known_rows = self._lookup_points(r_ids)
+            alive_rows = np.flatnonzero(self._intro >= 0)
+            gone = ~_isin_sorted(self._pid[alive_rows], r_ids)
+            del_rows = alive_rows[gone]
             new_ids = r_ids[~is_known]
-            deleted = known_ids[~_isin_sorted(known_ids, r_ids)]
-            observers, complete = {}, False
-            if len(new_ids):
-                observers, complete = self._read_observers(rec, ids, new_ids)
-            new_rgb = r_rgb[~is_known]
+            observers, complete = ({}, False) if len(new_ids) == 0 else self._read_observers(rec, ids, new_ids)
         else:
             st.mode = "incremental"
             observers, complete = {k: _observed_ids(rec.image(k)) for k in dirty}, True
             r_ids = np.unique(np.concatenate([*observers.values(), np.empty(0, np.int64)]))
-            is_known = _isin_sorted(r_ids, known_ids)
+            is_known, known_rows = self._lookup_points(r_ids)
             prev = [self._obs[k] for k in dirty if k in self._obs]
             gone = np.setdiff1d(np.concatenate([*prev, np.empty(0, np.int64)]), r_ids)
-            gone = gone[_isin_sorted(gone, known_ids)]
-            deleted = np.array([p for p in gone.tolist() if not rec.exists_point3D(p)], np.int64)
-            r_xyz, r_rgb = _read_points(rec, r_ids, ~is_known)
+            g_known, g_rows = self._lookup_points(gone)
+            gone, g_rows = gone[g_known], g_rows[g_known]
+            exists = np.array([rec.exists_point3D(p) for p in gone.tolist()], bool)
+            del_rows = g_rows[~exists]
             new_ids = r_ids[~is_known]
-            new_rgb = r_rgb[~is_known]
-            if len(known_ids) - len(deleted) + len(new_ids) != n_points:  # something we did not see: reconcile
+            r_xyz, r_rgb = _read_points(rec, r_ids, ~is_known)
+            if self.num_points - len(del_rows) + len(new_ids) != n_points:
+                # something no dirty keyframe observes changed (an edge case): reconcile by ids
                 all_ids = np.sort(np.fromiter(rec.points3D.keys(), np.int64, n_points))
-                deleted = known_ids[~_isin_sorted(known_ids, all_ids)]
-                extra = all_ids[~_isin_sorted(all_ids, known_ids) & ~_isin_sorted(all_ids, new_ids)]
+                alive_rows = np.flatnonzero(self._intro >= 0)
+                del_rows = alive_rows[~_isin_sorted(self._pid[alive_rows], all_ids)]
+                extra = all_ids[~self._lookup_points(all_ids)[0] & ~_isin_sorted(all_ids, new_ids)]
                 if len(extra):
                     e_xyz, e_rgb = _read_points(rec, extra, np.ones(len(extra), bool))
                     r_ids = np.concatenate([r_ids, extra])
@@ -555,8 +558,9 @@ class MapView:
                     r_rgb = np.concatenate([r_rgb, e_rgb])
                     order = np.argsort(r_ids)
                     r_ids, r_xyz, r_rgb = r_ids[order], r_xyz[order], r_rgb[order]
-                    is_known = _isin_sorted(r_ids, known_ids)
-                    new_ids, new_rgb = r_ids[~is_known], r_rgb[~is_known]
+                    is_known, known_rows = self._lookup_points(r_ids)
+                    new_ids = r_ids[~is_known]
+                complete = False
         if complete:  # full observation lists: kept to find deleted points next time
             self._obs.update(observers)
         current_ids = set(ids.tolist())
@@ -565,32 +569,27 @@ class MapView:
         st.points_read = len(r_ids)
         st.read_s = time.perf_counter() - t_read
 
-        # ---- diff against the scene
+        # ---- diff against what the scene shows
         t_diff = time.perf_counter()
         new_intro = _introductions(new_ids, observers, first_new, newest)
-        refit = self._fit is None or (full and (new_map or len(moved) > max(8, len(ids) // 2)))
+        refit = self._fit is None or (full and (new_map or many_moved))
         tol = self.move_tolerance * (self._fit[1] if self._fit is not None else 1.0)
-        known_rows = np.searchsorted(known_ids, r_ids[is_known])
-        delta = np.abs(r_xyz[is_known] - self._xyz[known_rows]).max(axis=1) if len(known_rows) else np.empty(0)
-        moved_rows = known_rows[delta > tol]
-        del_rows = np.searchsorted(known_ids, deleted)
-        changed = set(self._intro[moved_rows].tolist()) | set(self._intro[del_rows].tolist()) | set(
-            new_intro.tolist())
-        # store = what the scene shows: update the rows of the groups that are re-sent
-        upd = np.isin(self._intro[known_rows], list(changed)) if changed else np.zeros(len(known_rows), bool)
-        self._xyz[known_rows[upd]] = r_xyz[is_known][upd]
-        keep = np.ones(len(known_ids), bool)
-        keep[del_rows] = False
-        kept = known_ids[keep]
-        pid = np.concatenate([kept, new_ids])
-        # new points usually have the largest ids: the store stays sorted without a sort
-        order = (np.argsort(pid, kind="stable") if len(new_ids) and len(kept) and new_ids[0] < kept[-1]
-                 else slice(None))
-        self._pid = pid[order]
-        self._xyz = np.concatenate([self._xyz[keep], r_xyz[~is_known]])[order]
-        self._rgb = np.concatenate([self._rgb[keep], new_rgb])[order]
-        self._intro = np.concatenate([self._intro[keep], new_intro])[order]
-        st.points = len(self._pid)
+        krows = known_rows[is_known]
+        k_xyz = r_xyz[is_known]
+        delta = np.abs(k_xyz - self._xyz[krows]).max(axis=1) if len(krows) else np.empty(0)
+        changed = (set(self._intro[krows[delta > tol]].tolist()) | set(self._intro[del_rows].tolist())
+                   | set(new_intro.tolist()))
+        if changed:  # the groups re-sent show the points as read now
+            upd = np.isin(self._intro[krows], np.fromiter(changed, np.int64))
+            self._xyz[krows[upd]] = k_xyz[upd]
+        if len(del_rows):  # tombstones; compacted when they pile up
+            self._intro[del_rows] = -1
+            self._n_dead += len(del_rows)
+        if len(new_ids):
+            self._append_points(new_ids, r_xyz[~is_known], r_rgb[~is_known], new_intro)
+        if self._n_dead > max(1000, len(self._pid) // 20):
+            self._compact()
+        st.points = self.num_points
         path_changed = (len(state.path_times) != len(self._path_t)
                         or not np.array_equal(state.path_centers, self._path_c))
         self._path_t, self._path_c = state.path_times.copy(), state.path_centers.copy()
@@ -619,6 +618,42 @@ class MapView:
         self.stats = st
         return st
 
+    # ------------------------------------------------------------------ the point store
+    @property
+    def num_points(self) -> int:
+        """Map points the view holds (drawn unless clipped or hidden)."""
+        return len(self._pid) - self._n_dead
+
+    def _groups(self) -> set[int]:
+        """Introducing keyframes of the live points (the point groups)."""
+        return set(np.unique(self._intro[self._intro >= 0]).tolist())
+
+    def _lookup_points(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(found (M,) bool, rows (M,)) of point ids among the live rows of the store."""
+        found, rows = _lookup(ids, self._pid)
+        if len(rows) and self._n_dead:
+            found &= self._intro[rows] >= 0
+        return found, rows
+
+    def _append_points(self, ids: np.ndarray, xyz: np.ndarray, rgb: np.ndarray, intro: np.ndarray) -> None:
+        """Add new points; the store stays sorted by id (new points usually have the largest ids)."""
+        if self._n_dead and _isin_sorted(ids, self._pid).any():  # an id came back: drop its tombstone first
+            self._compact()
+        pid = np.concatenate([self._pid, ids])
+        xyz = np.concatenate([self._xyz, np.asarray(xyz, np.float32)])
+        rgb = np.concatenate([self._rgb, rgb])
+        intro = np.concatenate([self._intro, intro])
+        if len(self._pid) and len(ids) and ids[0] < self._pid[-1]:
+            order = np.argsort(pid, kind="stable")
+            pid, xyz, rgb, intro = pid[order], xyz[order], rgb[order], intro[order]
+        self._pid, self._xyz, self._rgb, self._intro = pid, xyz, rgb, intro
+
+    def _compact(self) -> None:
+        keep = self._intro >= 0
+        self._pid, self._xyz, self._rgb, self._intro = (self._pid[keep], self._xyz[keep], self._rgb[keep],
+                                                        self._intro[keep])
+        self._n_dead = 0
+
     def show_current(self, world_from_cam: np.ndarray | None) -> None:
         """Move the current-frame frustum (None hides it); one small message."""
         self._current = None if world_from_cam is None else np.asarray(world_from_cam, np.float64)
@@ -643,12 +678,14 @@ class MapView:
         for name in ("points", "keyframes", "path", "current", "directions"):
             if getattr(new, f"show_{name}") != getattr(old, f"show_{name}"):
                 self.root[name].set_property("visible", bool(getattr(new, f"show_{name}")))
+        if new.show_directions and self._directions_stale and self._key is not None:
+            self._send_directions()
         if self._key is None:
             return new
         if new.point_size != old.point_size:
-            self._send_chunks(set(self._chunks) | set(self._intro.tolist()))
+            self._send_chunks(set(self._chunks) | self._groups())
         elif new.clip != old.clip:
-            self._send_chunks({k for k in set(self._intro.tolist()) | set(self._chunks)
+            self._send_chunks({k for k in self._groups() | set(self._chunks)
                                if self._within(k, old.clip) != self._within(k, new.clip)})
         if new.frustum_scale != old.frustum_scale or new.clip != old.clip:
             self._send_cameras()
@@ -689,11 +726,20 @@ class MapView:
 
     def point_ids(self) -> np.ndarray:
         """(N,) sorted ids of the map points the view holds (drawn unless clipped)."""
-        return self._pid.copy()
+        return self._pid[self._intro >= 0]
+
+    def point_positions(self, ids) -> np.ndarray:
+        """(M, 3) float32 positions of the given points as the scene shows them (KeyError for unknown ids)."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        found, rows = self._lookup_points(ids)
+        if not found.all():
+            raise KeyError(f"points not in the view: {ids[~found][:10].tolist()}")
+        return self._xyz[rows]
 
     def point_introductions(self) -> dict[int, int]:
         """Point id -> the keyframe image id that introduced it (its group)."""
-        return dict(zip(self._pid.tolist(), self._intro.tolist()))
+        alive = self._intro >= 0
+        return dict(zip(self._pid[alive].tolist(), self._intro[alive].tolist()))
 
     @property
     def display_from_map(self) -> np.ndarray:
@@ -729,7 +775,7 @@ class MapView:
 
     def _compute_fit(self) -> tuple[np.ndarray, float]:
         centers = self._kf_centers()
-        pts = self._xyz.astype(np.float64)
+        pts = self._xyz[self._intro >= 0].astype(np.float64)
         if len(pts) >= 20:
             lo, hi = np.percentile(pts, [2, 98], axis=0)
             pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
@@ -852,15 +898,12 @@ class MapView:
         if len(poses):
             v = self._frustum_vertices(poses, depth)
             self._send(self.root["keyframes"]["geom"], self._lines_object(v, np.repeat(colors, 16, axis=0)))
-            c = poses[:, :3, 3]
-            d = c + poses[:, :3, 2] * depth * 3
-            v = np.stack([c, d], axis=1).reshape(-1, 3)
-            self._send(self.root["directions"]["geom"], self._lines_object(v, np.repeat(colors, 2, axis=0)))
         else:
             self.root["keyframes"]["geom"].delete()
-            self.root["directions"]["geom"].delete()
         self._scene["keyframes"] = len(poses)
-        self._scene["directions"] = len(poses)
+        self._directions_stale = True
+        if self.settings.show_directions:  # hidden by default: sent when switched on
+            self._send_directions()
         t0, t1 = self._clip_times()
         keep = (self._path_t >= t0) & (self._path_t <= t1)
         c, t = self._path_c[keep], self._path_t[keep]
@@ -872,17 +915,34 @@ class MapView:
             self.root["path"]["geom"].delete()
         self._scene["path"] = int(len(c))
 
+    def _send_directions(self) -> None:
+        """Viewing directions: a segment along each keyframe's optical axis (3 frustum depths long)."""
+        sel = self._clip_keyframes()
+        poses = self._kf_world_from_cam()[sel]
+        if len(poses):
+            colors = recency_colors(self._time_fractions(self._kf_times[sel]))
+            c = poses[:, :3, 3]
+            v = np.stack([c, c + poses[:, :3, 2] * self._frustum_depth * 3], axis=1).reshape(-1, 3)
+            self._send(self.root["directions"]["geom"], self._lines_object(v, np.repeat(colors, 2, axis=0)))
+        else:
+            self.root["directions"]["geom"].delete()
+        self._scene["directions"] = len(poses)
+        self._directions_stale = False
+
     def _send_current_geometry(self) -> None:
         v = self._frustum_vertices(np.eye(4)[None], self._frustum_depth * 1.5)
         col = np.tile(np.array(CURRENT_COLOR, np.float32), (len(v), 1))
         self._send(self.root["current"]["frame"], self._lines_object(v, col))
+        self._current_shown = None  # the server forgets a node's properties when its object is replaced
 
     def _send_current_pose(self) -> None:
         shown = self._current is not None
         if shown and self.settings.clip is not None and len(self._kf_ids):
             shown = self.settings.clip[1] >= int(self._kf_ids[-1])  # the present is inside the clip range
         node = self.root["current"]["frame"]
-        node.set_property("visible", bool(shown))
+        if shown != self._current_shown:
+            node.set_property("visible", bool(shown))
+            self._current_shown = shown
         if shown:
             node.set_transform(np.asarray(self._current, np.float64))
         self._scene["current"] = int(shown)
@@ -895,7 +955,8 @@ class MapView:
             node.delete()
             return
         row = np.searchsorted(self._pid, p)
-        if row >= len(self._pid) or self._pid[row] != p or not self._in_clip(int(self._intro[row])):
+        if (row >= len(self._pid) or self._pid[row] != p or self._intro[row] < 0
+                or not self._in_clip(int(self._intro[row]))):
             node.delete()
             return
         observers = sorted({int(el.image_id) for el in self._rec.point3D(p).track.elements})
@@ -910,6 +971,14 @@ class MapView:
             node["lines"].delete()
         self._send(node["point"], self._points_object(xyz[None], np.array([[230, 0, 230]]), self._point_size * 4))
         self._scene["track"] = int(len(centers))
+
+
+def _lookup(values: np.ndarray, sorted_ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(found (M,) bool, positions (M,)) of ``values`` in the sorted array ``sorted_ref``."""
+    if len(sorted_ref) == 0 or len(values) == 0:
+        return np.zeros(len(values), bool), np.zeros(len(values), np.int64)
+    pos = np.minimum(np.searchsorted(sorted_ref, values), len(sorted_ref) - 1)
+    return sorted_ref[pos] == values, pos
 
 
 def _isin_sorted(values: np.ndarray, sorted_ref: np.ndarray) -> np.ndarray:
