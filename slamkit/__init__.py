@@ -1,10 +1,28 @@
-"""slamkit: offline monocular visual SLAM with COLMAP's machinery, step by step."""
+"""slamkit: offline monocular visual SLAM with COLMAP's machinery, step by step.
+
+>>> import slamkit
+>>> slam = slamkit.Slam(slamkit.open_source("default"), slamkit.SlamConfig())   # doctest: +SKIP
+>>> for result in slam: print(result)                                           # doctest: +SKIP
+>>> slam.save("runs/demo")                                                      # doctest: +SKIP
+"""
 
 from .camera import Intrinsics
-from .errors import SlamkitError
+from .config import PRESETS, SlamConfig
+from .errors import (AssociationError, CalibrationError, ConfigError, FormatError, ImageReadError, OutputError,
+                     SlamkitError, SourceError)
+from .eval import ate, evaluate, rpe
+from .features import available_extractors, register_extractor
+from .io import read_kitti, read_trajectory, read_tum, write_kitti, write_tum
+from .pipeline import Slam, StepResult
 from .sources import open_source
 from .types import Frame, Trajectory
 
 __version__ = "0.1.0"
 
-__all__ = ["Intrinsics", "SlamkitError", "Frame", "Trajectory", "open_source", "__version__"]
+__all__ = [
+    "Slam", "SlamConfig", "StepResult", "PRESETS", "open_source", "Frame", "Trajectory", "Intrinsics",
+    "ate", "rpe", "evaluate", "read_tum", "write_tum", "read_kitti", "write_kitti", "read_trajectory",
+    "available_extractors", "register_extractor",
+    "SlamkitError", "SourceError", "ImageReadError", "FormatError", "CalibrationError", "AssociationError",
+    "ConfigError", "OutputError", "__version__",
+]

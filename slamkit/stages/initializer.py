@@ -48,6 +48,9 @@ class InitializerConfig:
     """RANSAC threshold of the two-view geometry, pixels."""
     max_reproj_error_px: float = 4.0
     min_track_angle_deg: float = 1.5
+    window_features: int = 1000
+    """Pair selection matches the window exhaustively on each frame's strongest keypoints, this many
+    (the chosen pair is matched in full); 0 = all."""
     max_history: int = 300
     """Frames that slid out of the window are kept (features only) up to this many, so they can be
     tracked once the map exists: every frame gets a pose, not only those after initialization."""
@@ -121,11 +124,21 @@ class Initializer:
         self.history.clear()
         self._matches.clear()
 
+    def _strongest(self, f: FrameFeatures) -> np.ndarray:
+        """Indices of the frame's strongest ``window_features`` keypoints."""
+        n = self.config.window_features
+        if n <= 0 or len(f) <= n:
+            return np.arange(len(f))
+        return np.sort(np.argsort(-f.features.scores, kind="stable")[:n])
+
     def _match(self, a: FrameFeatures, b: FrameFeatures) -> np.ndarray:
+        """Window matches on the strongest keypoints, as (M, 2) indices into the full keypoint lists."""
         key = (a.index, b.index)
         if key not in self._matches:
-            self._matches[key] = match_descriptors(a.features.descriptors, b.features.descriptors,
-                                                   a.features.binary, self.config.matching)
+            ia, ib = self._strongest(a), self._strongest(b)
+            m = match_descriptors(a.features.descriptors[ia], b.features.descriptors[ib], a.features.binary,
+                                  self.config.matching)
+            self._matches[key] = np.stack([ia[m[:, 0]], ib[m[:, 1]]], axis=1) if len(m) else m
         return self._matches[key]
 
     def step(self, frame: FrameFeatures) -> InitResult:
@@ -189,7 +202,10 @@ class Initializer:
 
     def _try_pair(self, fa: FrameFeatures, fb: FrameFeatures, need_ratio: float = 0.0) -> InitResult:
         c = self.config
-        matches = self._match(fa, fb)
+        if len(self._match(fa, fb)) < c.min_matches:
+            return InitResult("failed", f"{len(self._match(fa, fb))} matches < {c.min_matches}")
+        matches = match_descriptors(fa.features.descriptors, fb.features.descriptors, fa.features.binary,
+                                    c.matching)
         if len(matches) < c.min_matches:
             return InitResult("failed", f"{len(matches)} matches < {c.min_matches}")
         tvg = pycolmap.estimate_calibrated_two_view_geometry(

@@ -31,7 +31,7 @@ class TrackerConfig:
     """Guided-matching radius around map points projected with the predicted pose, pixels."""
     refine_radius_px: float = 6.0
     """Guided-matching radius with the estimated pose (tracking the local map), pixels."""
-    local_keyframes: int = 10
+    local_keyframes: int = 20
     """The local map: points of the last keyframe and of up to this many most covisible keyframes."""
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     random_seed: int = 0
