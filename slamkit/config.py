@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from .errors import ConfigError
-from .features import MatchingConfig, available_extractors
+from .features import MatchingConfig, available_extractors, available_matchers
 from .stages.ba import BundleAdjustmentConfig
 from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
@@ -22,6 +22,9 @@ class SlamConfig:
 
     features: str = "orb"
     """Feature extractor by registry name (``slamkit.features.available_extractors()``)."""
+    matcher: str = "nn"
+    """Pair matcher for initialization and keyframe correspondences (``available_matchers()``); "nn" is
+    nearest-neighbour descriptor matching with each stage's MatchingConfig."""
     num_features: int = 2000
     """Keypoints per frame the extractor aims for."""
     frame_skip: int = 1
@@ -44,6 +47,9 @@ class SlamConfig:
         if self.features not in available_extractors():
             raise ConfigError(f"features: unknown extractor {self.features!r}; "
                               f"available: {', '.join(available_extractors())}")
+        if self.matcher not in available_matchers():
+            raise ConfigError(f"matcher: unknown matcher {self.matcher!r}; "
+                              f"available: {', '.join(available_matchers())}")
         if self.num_features < 50:
             raise ConfigError(f"num_features must be >= 50 (got {self.num_features})")
         if self.frame_skip < 1:

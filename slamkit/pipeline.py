@@ -17,7 +17,7 @@ import numpy as np
 
 from .config import SlamConfig
 from .errors import ConfigError
-from .features import FrameFeatures, create_extractor
+from .features import FrameFeatures, create_extractor, create_matcher
 from .map import SlamMap
 from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
@@ -131,11 +131,12 @@ class Slam:
         c = self.config
         self.camera = self.source.camera
         self.extractor = create_extractor(c.features, num_features=c.num_features)
+        matcher = None if c.matcher == "nn" else create_matcher(c.matcher)  # "nn": per-stage MatchingConfig
         self.tracker = Tracker(_seeded(c.tracker, c.seed))
         self.selector = KeyframeSelector(c.keyframes)
-        self.mapper = Mapper(c.mapper)
+        self.mapper = Mapper(c.mapper, matcher)
         self.bundle_adjuster = BundleAdjuster(c.ba)
-        self.initializer = Initializer(self.camera, _seeded(c.initializer, c.seed))
+        self.initializer = Initializer(self.camera, _seeded(c.initializer, c.seed), matcher)
         self.indices = np.arange(0, len(self.source), c.frame_skip)[: c.max_frames]
         self.records: list[FrameRecord] = []
         self.segments: list[Segment] = []

@@ -1,8 +1,10 @@
 """Local features: a registry of extractors (ORB default, SIFT; learned ones plug in) and matching."""
 
 from . import opencv as _opencv  # noqa: F401  (registers orb and sift)
-from .base import (Extractor, Features, FrameFeatures, MatchingConfig, available_extractors, create_extractor,
+from .base import (Extractor, Features, FrameFeatures, NearestNeighborMatcher, PairMatcher, available_matchers,
+                   create_matcher, register_matcher, MatchingConfig, available_extractors, create_extractor,
                    descriptor_distance, guided_match, match_descriptors, register_extractor)
 
-__all__ = ["Extractor", "Features", "FrameFeatures", "MatchingConfig", "available_extractors", "create_extractor",
+__all__ = ["Extractor", "Features", "FrameFeatures", "NearestNeighborMatcher", "PairMatcher",
+           "available_matchers", "create_matcher", "register_matcher", "MatchingConfig", "available_extractors", "create_extractor",
            "descriptor_distance", "guided_match", "match_descriptors", "register_extractor"]

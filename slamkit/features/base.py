@@ -28,9 +28,16 @@ class Features:
     scores: np.ndarray
     binary: bool
     sizes: np.ndarray | None = None
+    image_size: tuple[int, int] | None = None
+    """(width, height) of the image, for matchers that normalise keypoints (LightGlue)."""
 
     def __len__(self) -> int:
         return len(self.keypoints)
+
+    def subset(self, idx: np.ndarray) -> "Features":
+        """The features at indices ``idx`` (same order)."""
+        return Features(self.keypoints[idx], self.descriptors[idx], self.scores[idx], self.binary,
+                        None if self.sizes is None else self.sizes[idx], self.image_size)
 
 
 class Extractor(Protocol):
@@ -56,6 +63,39 @@ class MatchingConfig:
 
 
 _REGISTRY: dict[str, Callable[..., Extractor]] = {}
+_MATCHERS: dict[str, Callable[..., "PairMatcher"]] = {}
+
+
+class PairMatcher(Protocol):
+    """Matches the features of two images: ``match(a, b) -> (M, 2) int64`` index pairs (i in a, j in b).
+
+    Used for initialization and for keyframe-to-keyframe correspondences; frame tracking always uses
+    descriptor distances (guided by projection), which every extractor provides.
+    """
+
+    name: str
+
+    def match(self, a: Features, b: Features) -> np.ndarray: ...
+
+
+def register_matcher(name: str) -> Callable:
+    """Class decorator: make a pair matcher available under ``name``."""
+
+    def deco(factory):
+        _MATCHERS[name] = factory
+        return factory
+
+    return deco
+
+
+def available_matchers() -> list[str]:
+    return sorted(_MATCHERS)
+
+
+def create_matcher(name: str, **options) -> "PairMatcher":
+    if name not in _MATCHERS:
+        raise ConfigError(f"features: unknown matcher {name!r}; available: {', '.join(available_matchers())}")
+    return _MATCHERS[name](**options)
 
 
 def register_extractor(name: str) -> Callable:
@@ -118,6 +158,22 @@ def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, binary: bool,
             best_back[m.queryIdx] = m.trainIdx
         pairs = pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
     return pairs
+
+
+@register_matcher("nn")
+class NearestNeighborMatcher:
+    """Nearest-neighbour descriptor matching (Hamming for binary, L2 for float) with ratio test and
+    optional mutual check."""
+
+    name = "nn"
+
+    def __init__(self, config: MatchingConfig | None = None, **overrides):
+        from dataclasses import replace
+
+        self.config = replace(config or MatchingConfig(), **overrides)
+
+    def match(self, a: Features, b: Features) -> np.ndarray:
+        return match_descriptors(a.descriptors, b.descriptors, a.binary, self.config)
 
 
 def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray, kp_desc: np.ndarray,

@@ -63,7 +63,7 @@ class OrbExtractor:
         kps = self._orb.detect(gray, None)
         kps = _grid_cap(list(kps), self.grid, gray.shape[:2], self.num_features)
         kps, desc = self._orb.compute(gray, kps)
-        return _to_features(kps, desc, binary=True)
+        return _to_features(kps, desc, True, gray.shape)
 
 
 @register_extractor("sift")
@@ -84,15 +84,16 @@ class SiftExtractor:
         kps, desc = self._sift.detectAndCompute(gray, None)
         if desc is not None and len(desc):
             desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)  # RootSIFT
-        return _to_features(kps, desc, binary=False)
+        return _to_features(kps, desc, False, gray.shape)
 
 
-def _to_features(kps, desc, binary: bool) -> Features:
+def _to_features(kps, desc, binary: bool, shape: tuple[int, ...]) -> Features:
+    size = (int(shape[1]), int(shape[0]))
     if desc is None or not kps:
         d = 32 if binary else 128
         return Features(np.empty((0, 2)), np.empty((0, d), np.uint8 if binary else np.float32),
-                        np.empty(0, np.float32), binary, np.empty(0, np.float32))
+                        np.empty(0, np.float32), binary, np.empty(0, np.float32), size)
     xy = np.array([k.pt for k in kps], dtype=np.float64)
     scores = np.array([k.response for k in kps], dtype=np.float32)
     sizes = np.array([k.size for k in kps], dtype=np.float32)
-    return Features(xy, np.ascontiguousarray(desc), scores, binary, sizes)
+    return Features(xy, np.ascontiguousarray(desc), scores, binary, sizes, size)

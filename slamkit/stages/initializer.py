@@ -20,7 +20,7 @@ import pycolmap
 
 from ..camera import Intrinsics
 from ..errors import ConfigError
-from ..features import FrameFeatures, MatchingConfig, match_descriptors
+from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, pycolmap_camera
 from .flow import flow_score
 
@@ -104,9 +104,11 @@ def parallax_deg(x1: np.ndarray, x2: np.ndarray, R_2from1: np.ndarray, K: np.nda
 class Initializer:
     """Buffers frames until an initial map can be built from a pair of them."""
 
-    def __init__(self, camera: Intrinsics, config: InitializerConfig = InitializerConfig()):
+    def __init__(self, camera: Intrinsics, config: InitializerConfig = InitializerConfig(),
+                 matcher: PairMatcher | None = None):
         config.validate()
         self.config = config
+        self.matcher = matcher if matcher is not None else NearestNeighborMatcher(config.matching)
         self.camera = camera.pinhole
         self._pycamera = pycolmap_camera(self.camera)
         self.frames: list[FrameFeatures] = []
@@ -136,8 +138,7 @@ class Initializer:
         key = (a.index, b.index)
         if key not in self._matches:
             ia, ib = self._strongest(a), self._strongest(b)
-            m = match_descriptors(a.features.descriptors[ia], b.features.descriptors[ib], a.features.binary,
-                                  self.config.matching)
+            m = self.matcher.match(a.features.subset(ia), b.features.subset(ib))
             self._matches[key] = np.stack([ia[m[:, 0]], ib[m[:, 1]]], axis=1) if len(m) else m
         return self._matches[key]
 
@@ -204,8 +205,7 @@ class Initializer:
         c = self.config
         if len(self._match(fa, fb)) < c.min_matches:
             return InitResult("failed", f"{len(self._match(fa, fb))} matches < {c.min_matches}")
-        matches = match_descriptors(fa.features.descriptors, fb.features.descriptors, fa.features.binary,
-                                    c.matching)
+        matches = self.matcher.match(fa.features, fb.features)
         if len(matches) < c.min_matches:
             return InitResult("failed", f"{len(matches)} matches < {c.min_matches}")
         tvg = pycolmap.estimate_calibrated_two_view_geometry(

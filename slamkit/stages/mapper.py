@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ConfigError
-from ..features import FrameFeatures, MatchingConfig, match_descriptors
+from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, rigid_from_matrix
 
 
@@ -72,9 +72,10 @@ def sampson_error_px(x1: np.ndarray, x2: np.ndarray, cam2_from_cam1: np.ndarray,
 class Mapper:
     """Inserts keyframes into a :class:`SlamMap`."""
 
-    def __init__(self, config: MapperConfig = MapperConfig()):
+    def __init__(self, config: MapperConfig = MapperConfig(), matcher: PairMatcher | None = None):
         config.validate()
         self.config = config
+        self.matcher = matcher if matcher is not None else NearestNeighborMatcher(config.matching)
 
     def step(self, slam_map: SlamMap, frame: FrameFeatures, cam_from_world: np.ndarray, point2D_idxs: np.ndarray,
              point3D_ids: np.ndarray, ref_image_id: int) -> MappingResult:
@@ -123,8 +124,7 @@ class Mapper:
         # new correspondences between unmapped keypoints
         free_n = np.flatnonzero(n_pids < 0)
         free_c = np.flatnonzero(~tracked)
-        pairs = match_descriptors(kf.features.descriptors[free_n], frame.features.descriptors[free_c],
-                                  kf.features.binary, self.config.matching)
+        pairs = self.matcher.match(kf.features.subset(free_n), frame.features.subset(free_c))
         new_pairs = np.stack([free_n[pairs[:, 0]], free_c[pairs[:, 1]]], axis=1) if len(pairs) else \
             np.empty((0, 2), np.int64)
         if len(new_pairs):
