@@ -246,7 +246,7 @@ def test_frame_view_derives_the_tracked_matches(run):
 
 
 def test_load_saved_run_and_export_html(run, tmp_path):
-    slam, view = run["slam"], run["view"]
+    slam = run["slam"]
     state = state_from_run(run["dir"])
     assert np.array_equal(state.keyframe_ids, np.array(sorted(slam.slam_map.keyframes)))
     assert np.allclose(state.keyframe_times, [slam.slam_map.keyframes[i].timestamp for i in state.keyframe_ids])

@@ -280,9 +280,9 @@ class SlamApp:
             self.w_pending.value = ""
             return
         items = ", ".join(f"{_LABELS.get(k, k)} {a} → {b}" for k, (a, b) in changes.items())
-        when = "the current run continues with its settings; " if self._running else ""
-        self.w_pending.value = (f'<span class="slamkit-pending-text" style="color:#b35900">⚠ changed: {items}. '
-                                f'{when}press <b>Reset</b> to apply (takes effect on Reset).</span>')
+        when = " The running pipeline keeps its settings until then." if self.slam.records else ""
+        self.w_pending.value = (f'<span class="slamkit-pending-text" style="color:#b35900">⚠ changed: {items} '
+                                f'— takes effect on Reset (press <b>Reset</b> to apply and start over).{when}</span>')
 
     def _source_changed(self) -> None:
         spec = self.w_source.value.strip() or DEFAULT_SOURCE

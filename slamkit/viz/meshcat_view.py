@@ -16,9 +16,10 @@ keyframes and the posed frames' path) and, on every :meth:`MapView.update`, send
   kB), re-sent when the keyframes move; the current frame is a fixed frustum moved by ``set_transform``.
 
 Colours: recency from green (first keyframe) through yellow to red (last keyframe), by timestamp, for
-frustums, path and viewing directions alike; the current frame is blue; the selected track is magenta. The map is shown in a
-display frame (x right, y forward, z up of the first keyframe's camera) centred and scaled so it spans
-about six units: "Reset camera" refits it and puts the viewer's camera back; nothing else is re-sent.
+frustums, path and viewing directions alike; the current frame is blue; the selected track is magenta.
+The map is shown in a display frame (x right, y forward, z up of the first keyframe's camera) centred and
+scaled so it spans about six units (one ``set_transform`` of the root): "Reset camera" refits it and puts
+the viewer's camera back behind and above the first keyframe; no geometry but the frustums is re-sent.
 
 Geometry goes to meshcat as 3xN float32 (positions and colours in [0, 1]); ``Nx3`` would be drawn as garbage.
 """
@@ -188,7 +189,7 @@ class ViewSettings:
     frustum_scale: float = 1.0
     """Frustum size as a multiple of 1/40 of the map extent."""
     point_size: float = 1.0
-    """Point size as a multiple of 1/250 of the map extent."""
+    """Point size as a multiple of 1/120 of the map extent (in the viewer: 0.05 of its 6 units)."""
     track_point: int = -1
     """Draw lines from this 3D point id to every keyframe observing it (-1 = none)."""
     clip: tuple[int, int] | None = None
@@ -608,6 +609,8 @@ class MapView:
             self._send_cameras()
         if new_map or refit:
             self._send_current_geometry()
+        if new_map:
+            self._send_camera_home()
         self._current = state.current
         self._send_current_pose()
         if self.settings.track_point >= 0 and (changed or kf_changed):
@@ -705,9 +708,13 @@ class MapView:
             self._send_current_geometry()
             self._send_current_pose()
             self._send_track()
+        self._send_camera_home()
+
+    def _send_camera_home(self) -> None:
+        """The viewer's camera behind and above the first keyframe, looking at the map's centre."""
         cam = self.vis["/Cameras/default/rotated/<object>"]
-        offset = DISPLAY_EXTENT * np.array([0.35, -1.1, 0.75])  # behind and above the first camera
-        cam.set_property("position", [float(offset[0]), float(offset[2]), float(-offset[1])])
+        offset = DISPLAY_EXTENT * np.array([0.3, -1.2, 0.75])  # viewer axes: x right, y forward, z up
+        cam.set_property("position", [float(offset[0]), float(offset[2]), float(-offset[1])])  # three.js is y-up
 
     # ------------------------------------------------------------------ what is in the scene
     def scene_counts(self) -> dict[str, int]:
@@ -800,7 +807,7 @@ class MapView:
     @property
     def _point_size(self) -> float:
         """In viewer units (point sizes ignore the scale of the ``/slamkit`` transform)."""
-        return DISPLAY_EXTENT / 250.0 * self.settings.point_size
+        return DISPLAY_EXTENT / 120.0 * self.settings.point_size
 
     @staticmethod
     def _within(k: int, clip: tuple[int, int] | None) -> bool:

@@ -1,0 +1,248 @@
+"""The step-through notebook in a real browser: JupyterLab + headless Debian chromium driven by Playwright.
+
+Opens ``02_step_through`` in JupyterLab on a loopback port, runs all cells, then uses the app as a person
+would: Step three frames, drag the flow-threshold slider (the app must say the change is pending until
+Reset), Reset, Run, Pause (the kernel must stay responsive during the run), Run to the end. Inside the
+meshcat viewer's iframe it counts the three.js scene's points and keyframe frustums against the app's map,
+and compares screenshots of the 3D view before and after the run.
+
+Skipped, with the reason, when chromium (``/usr/bin/chromium``), Playwright (Python) or JupyterLab is not
+installed. Screenshots go to the test's temporary folder (and to ``$SLAMKIT_SCREENSHOTS`` when set).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+                 "--disable-dev-shm-usage", "--disable-background-networking", "--disable-component-update",
+                 "--no-first-run", "--disable-sync"]
+NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "02_step_through.ipynb"
+PARAMS = {"max_frames": 30, "frame_skip": 2, "init_frames": 10}
+"""A short run: 30 frames of the default sequence."""
+
+if not os.path.exists(CHROMIUM):
+    pytest.skip(f"{CHROMIUM} not found (apt-get install -y chromium)", allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api", reason="playwright (Python) is not installed")
+pytest.importorskip("jupyterlab", reason="jupyterlab is not installed")
+nbformat = pytest.importorskip("nbformat")
+psutil = pytest.importorskip("psutil")
+PIL = pytest.importorskip("PIL.Image")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _meshcat_servers() -> set[int]:
+    return {p.pid for p in psutil.process_iter(["cmdline"]) if "slamkit.viz.server" in (p.info["cmdline"] or [])}
+
+
+@pytest.fixture
+def lab(tmp_path):
+    """JupyterLab on 127.0.0.1 with an isolated config and a copy of the notebook (parameters injected)."""
+    work = tmp_path / "work"
+    work.mkdir()
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    idx = next(i for i, c in enumerate(nb.cells) if "parameters" in c.metadata.get("tags", []))
+    params = dict(PARAMS, out_dir=str(tmp_path / "out"))
+    cell = nbformat.v4.new_code_cell("\n".join(f"{k} = {v!r}" for k, v in params.items()))
+    cell.metadata["tags"] = ["injected-parameters"]
+    nb.cells.insert(idx + 1, cell)
+    nbformat.write(nb, work / NOTEBOOK.name)
+    env = dict(os.environ, JUPYTER_CONFIG_DIR=str(tmp_path / "config"),
+               JUPYTERLAB_SETTINGS_DIR=str(tmp_path / "config" / "lab" / "user-settings"),
+               JUPYTERLAB_WORKSPACES_DIR=str(tmp_path / "workspaces"), JUPYTER_RUNTIME_DIR=str(tmp_path / "runtime"))
+    jupyter = [sys.executable, "-m", "jupyter"]
+    subprocess.run(jupyter + ["labextension", "disable", "--level=user",
+                              "@jupyterlab/apputils-extension:announcements"], env=env, check=True,
+                   capture_output=True)
+    port = _free_port()
+    before = _meshcat_servers()
+    log = open(tmp_path / "jupyter.log", "w")
+    proc = subprocess.Popen(jupyter + ["lab", "--no-browser", f"--port={port}", "--ip=127.0.0.1", "--allow-root",
+                                       "--IdentityProvider.token=", "--ServerApp.password=",
+                                       "--LabApp.expose_app_in_browser=True", f"--ServerApp.root_dir={work}"],
+                            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=work)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            try:
+                urllib.request.urlopen(f"{url}/api/status", timeout=5)
+                break
+            except OSError:
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError("jupyter lab did not start: " + (tmp_path / "jupyter.log").read_text()[-2000:])
+                time.sleep(0.5)
+        yield dict(url=url, proc=proc, tmp=tmp_path, before=before)
+    finally:
+        proc.send_signal(signal.SIGTERM)  # kernels shut down cleanly; their meshcat servers exit
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        log.close()
+    deadline = time.monotonic() + 15
+    while (_meshcat_servers() - before) and time.monotonic() < deadline:
+        time.sleep(0.3)
+    assert not (_meshcat_servers() - before), "a meshcat server outlived JupyterLab's kernel"
+
+
+SCENE_JS = """() => {
+    const root = viewer.scene.getObjectByName("meshcat").getObjectByName("slamkit");
+    if (!root) return {points: 0, groups: 0, frustums: 0};
+    let points = 0, groups = 0, frustums = 0;
+    const pts = root.getObjectByName("points");
+    if (pts) pts.traverse(o => {
+        if (o.type === "Points") { points += o.geometry.attributes.position.count; groups++; }
+    });
+    const kf = root.getObjectByName("keyframes");
+    if (kf) kf.traverse(o => { if (o.type === "LineSegments") frustums += o.geometry.attributes.position.count / 16; });
+    return {points, groups, frustums};
+}"""
+
+
+def _summary(page) -> dict:
+    def num(sel):
+        t = page.locator(f".slamkit-summary {sel}").first.text_content()
+        return int(t)
+    return {k: num(f".{k}") for k in ("frames", "keyframes", "points", "scene-points", "scene-keyframes")}
+
+
+def _wait(predicate, timeout: float, what: str, interval: float = 0.25):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+def _shot(page, frame_el, path: Path) -> np.ndarray:
+    frame_el.scroll_into_view_if_needed()
+    time.sleep(0.6)  # the viewer renders on the next animation frame
+    frame_el.screenshot(path=str(path))
+    if os.environ.get("SLAMKIT_SCREENSHOTS"):
+        Path(os.environ["SLAMKIT_SCREENSHOTS"]).mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, Path(os.environ["SLAMKIT_SCREENSHOTS"]) / path.name)
+    return np.asarray(PIL.open(path).convert("RGB"), np.float32)
+
+
+def test_step_through_notebook_in_chromium(lab):
+    tmp = lab["tmp"]
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+        try:
+            page = browser.new_page(viewport={"width": 1500, "height": 1100})
+            page.set_default_timeout(60_000)
+            page.goto(f"{lab['url']}/lab/tree/{NOTEBOOK.name}")
+            page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget"
+                                   " && window.jupyterapp.shell.currentWidget.sessionContext"
+                                   " && window.jupyterapp.shell.currentWidget.sessionContext.session"
+                                   " && window.jupyterapp.shell.currentWidget.sessionContext.session.kernel",
+                                   timeout=90_000)
+            page.wait_for_function("() => window.jupyterapp.shell.currentWidget.sessionContext.session.kernel"
+                                   ".connectionStatus === 'connected'", timeout=90_000)
+            page.evaluate("() => window.jupyterapp.commands.execute('notebook:run-all-cells')")
+            # the last cell resets the app: a fresh run is ready
+            page.get_by_text("flow threshold now:").first.wait_for(timeout=150_000)
+            app = page.locator(".slamkit-app").first
+            app.wait_for()
+            assert _summary(page)["frames"] == 0
+
+            # --- Step: three frames, one per click
+            step = page.locator("button.slamkit-step-button").first
+            for i in range(1, 4):
+                step.click()
+                _wait(lambda: _summary(page)["frames"] == i, 60, f"frame {i} after Step")
+
+            # --- the flow threshold slider, dragged: pending until Reset, and the UI says so
+            slider = page.locator(".slamkit-flow-threshold").first
+            slider.scroll_into_view_if_needed()
+            handle = slider.locator(".noUi-handle").first
+            box = handle.bounding_box()
+            page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+            page.mouse.down()
+            page.mouse.move(box["x"] + box["width"] / 2 + 60, box["y"] + box["height"] / 2, steps=8)
+            page.mouse.up()
+            pending = page.locator(".slamkit-pending-text").first
+            pending.wait_for(timeout=30_000)
+            text = pending.text_content()
+            m = re.search(r"flow threshold ([0-9]+\.[0-9]+) → ([0-9]+\.[0-9]+)", text)
+            assert m and "takes effect on Reset" in text, text
+            running, new_threshold = float(m.group(1)), float(m.group(2))
+            assert running == 0.08 and new_threshold > running  # the notebook's last cells set 0.08
+            step.click()  # the running config is untouched: still stepping with the old threshold
+            _wait(lambda: _summary(page)["frames"] == 4, 60, "frame 4")
+            assert m.group(0) in page.locator(".slamkit-pending-text").first.text_content()
+
+            # --- Reset: applies it and starts over
+            page.locator("button.slamkit-reset-button").first.click()
+            _wait(lambda: _summary(page)["frames"] == 0 and page.locator(".slamkit-pending-text").count() == 0,
+                  60, "the reset")
+
+            map_frame_el = page.locator(".slamkit-map-view iframe").first
+            map_frame_el.wait_for()
+            viewer_frame = next(f for f in page.frames if "/static/" in f.url)
+            viewer_frame.wait_for_function("() => typeof viewer !== 'undefined'")
+            empty = viewer_frame.evaluate(SCENE_JS)
+            assert empty == {"points": 0, "groups": 0, "frustums": 0}, empty
+            before = _shot(page, map_frame_el, tmp / "map_before_run.png")
+
+            # --- Run, Pause while running (the kernel answers between frames), Run to the end
+            run = page.locator("button.slamkit-run-button").first
+            run.click()
+            _wait(lambda: run.text_content().strip() == "Pause", 30, "the Pause label")
+            _wait(lambda: _summary(page)["frames"] >= 16, 120, "frames while running")
+            run.click()  # Pause
+            _wait(lambda: run.text_content().strip() == "Run", 30, "the run to pause")
+            time.sleep(1.0)  # let the last frame's widget updates arrive
+            paused_at = _summary(page)["frames"]
+            assert paused_at < PARAMS["max_frames"], "Pause came too late to test it"
+            time.sleep(2.0)
+            assert _summary(page)["frames"] == paused_at  # paused: no more frames
+            middle = _shot(page, map_frame_el, tmp / "map_paused.png")
+            run.click()
+            _wait(lambda: _summary(page)["frames"] == PARAMS["max_frames"], 120, "the run to finish")
+            _wait(lambda: run.text_content().strip() == "Run", 30, "the Run label after the end")
+            time.sleep(1.0)
+            s = _summary(page)
+            assert s["keyframes"] >= 4 and s["points"] > 300
+            assert f"{new_threshold:.3f} (flow threshold)" in page.locator(".slamkit-step").first.text_content()
+
+            # --- the three.js scene holds the map: points and keyframe frustums
+            scene = _wait(lambda: (lambda sc: sc if sc["points"] == s["points"] else None)(
+                viewer_frame.evaluate(SCENE_JS)), 30, "the viewer to receive the map")
+            assert scene["points"] == s["points"] == s["scene-points"]
+            assert scene["frustums"] == s["keyframes"] == s["scene-keyframes"]
+            after = _shot(page, map_frame_el, tmp / "map_after_run.png")
+
+            # --- the rendered view changed
+            assert before.shape == after.shape
+            diff_run = np.abs(after - before).mean(axis=2)
+            assert (diff_run > 30).mean() > 0.005, "the 3D view did not change after the run"
+            diff_more = np.abs(after - middle).mean(axis=2)
+            assert (diff_more > 30).mean() > 0.0005, "the 3D view did not change after the paused part"
+            # the page itself, for a look
+            page.screenshot(path=str(tmp / "page.png"), full_page=False)
+            (tmp / "scene.json").write_text(json.dumps({"summary": s, "scene": scene}))
+        finally:
+            browser.close()
