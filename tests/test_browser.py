@@ -51,7 +51,8 @@ def _free_port() -> int:
 
 
 def _meshcat_servers() -> set[int]:
-    return {p.pid for p in psutil.process_iter(["cmdline"]) if "slamkit.viz.server" in (p.info["cmdline"] or [])}
+    return {p.pid for p in psutil.process_iter(["cmdline"])
+            if any(str(a).endswith("_meshcat_server.py") for a in (p.info["cmdline"] or []))}
 
 
 @pytest.fixture

@@ -37,7 +37,7 @@ def meshcat_servers() -> set[int]:
     out = set()
     for p in psutil.process_iter(["cmdline"]):
         cmd = p.info["cmdline"] or []
-        if "slamkit.viz.server" in cmd:
+        if any(str(a).endswith("_meshcat_server.py") for a in cmd):
             out.add(p.pid)
     return out
 

@@ -87,6 +87,8 @@ class SlamApp:
         self._task: asyncio.Task | None = None
         self._running = False
         self._showing_run: Path | None = None
+        self.last_error: str | None = None
+        """The traceback of the last error shown in the status line."""
         self._build_widgets(out_dir)
         self._refresh_all()
 
@@ -448,7 +450,10 @@ class SlamApp:
         self.pause()
         if self._own_view:
             self.view.close()
-        self.widget.close()
+        for w in list(vars(self).values()):  # every widget of the app (their comms), containers last
+            if isinstance(w, W.Widget) and not isinstance(w, W.Box):
+                w.close()
+        _close_boxes(self.widget)
 
     # ------------------------------------------------------------------ views
     def _reprojection_error(self) -> float:
@@ -577,6 +582,12 @@ class SlamApp:
                               f"{len(pairs)} keypoints observe the same 3D points"
                               + (" (300 drawn)" if len(pairs) > 300 else ""))
         return img
+
+
+def _close_boxes(widget) -> None:
+    for child in getattr(widget, "children", ()):
+        _close_boxes(child)
+    widget.close()
 
 
 __all__ = ["SlamApp", "DEFAULT_SOURCE"]

@@ -28,11 +28,13 @@ import threading
 import time
 import warnings
 import weakref
+from pathlib import Path
 
 from ..errors import SlamkitError
+from ._meshcat_server import HOST
 
-HOST = "127.0.0.1"
-"""The only address the server listens on."""
+SERVER_SCRIPT = Path(__file__).with_name("_meshcat_server.py")
+"""The server process's program (meshcat's tornado/zmq bridge on 127.0.0.1)."""
 
 
 class ViewerError(SlamkitError):
@@ -67,7 +69,8 @@ class MeshcatServer:
 
     def __init__(self, timeout: float = 30.0):
         self.timeout = float(timeout)
-        cmd = [sys.executable, "-u", "-m", "slamkit.viz.server", "--parent-pid", str(os.getpid())]
+        # run by path (-P: its folder is not put on sys.path): the child imports meshcat, not slamkit
+        cmd = [sys.executable, "-u", "-P", str(SERVER_SCRIPT), "--parent-pid", str(os.getpid())]
         env = dict(os.environ, PYTHONWARNINGS="ignore::DeprecationWarning")
         # a session of its own: an interrupt (SIGINT to the kernel's process group) must not kill the viewer
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
@@ -169,65 +172,3 @@ def _drain(stream) -> None:
     with contextlib.suppress(Exception):
         for _ in iter(lambda: stream.read(4096), b""):
             pass
-
-
-# ---------------------------------------------------------------------- the server process
-
-
-def _serve(parent_pid: int | None) -> None:
-    warnings.simplefilter("ignore", DeprecationWarning)
-    import tornado.httpserver
-    import tornado.ioloop
-    import tornado.netutil
-    import zmq
-    from meshcat.servers.zmqserver import ZMQWebSocketBridge
-
-    class LoopbackBridge(ZMQWebSocketBridge):
-        """meshcat's bridge with both sockets on 127.0.0.1 and OS-chosen ports."""
-
-        def setup_zmq(self, url):
-            socket, stream, _ = super().setup_zmq(url)
-            return socket, stream, socket.getsockopt_string(zmq.LAST_ENDPOINT)
-
-        def make_app(self):
-            app = super().make_app()
-
-            def listen(port, **kwargs):
-                sockets = tornado.netutil.bind_sockets(port, address=HOST)
-                server = tornado.httpserver.HTTPServer(app, **kwargs)
-                server.add_sockets(sockets)
-                self.bound_port = sockets[0].getsockname()[1]
-                return server
-
-            app.listen = listen
-            return app
-
-    bridge = LoopbackBridge(zmq_url=f"tcp://{HOST}:*", host=HOST, port=0)
-    bridge.fileserver_port = bridge.bound_port
-    bridge.web_url = f"http://{HOST}:{bridge.bound_port}/static/"
-    print(f"zmq_url={bridge.zmq_url}", flush=True)
-    print(f"web_url={bridge.web_url}", flush=True)
-    if parent_pid:
-        def check_parent():
-            if os.getppid() != parent_pid:
-                bridge.ioloop.stop()
-
-        tornado.ioloop.PeriodicCallback(check_parent, 1000).start()
-    try:
-        bridge.run()
-    except KeyboardInterrupt:
-        pass
-
-
-def main(argv: list[str] | None = None) -> None:
-    import argparse
-
-    parser = argparse.ArgumentParser(description="meshcat server on 127.0.0.1 (free ports)")
-    parser.add_argument("--parent-pid", type=int, default=None,
-                        help="exit when this process is no longer the parent")
-    args = parser.parse_args(argv)
-    _serve(args.parent_pid)
-
-
-if __name__ == "__main__":
-    main()
