@@ -145,6 +145,7 @@ class Slam:
         self.last_keyframe: int = -1
         self._points_at_last_keyframe = 0
         self._consecutive_lost = 0
+        self._last_ids: np.ndarray | None = None
         self._cursor = 0
         self.timings: dict[str, float] = {}
         self.wall_time = 0.0
@@ -284,10 +285,11 @@ class Slam:
             record.status = SKIPPED
             timings["track"] = time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
-        tr = self.tracker.step(ff, self.local_map, slam_map.pycolmap_camera, self._predict())
+        tr = self.tracker.step(ff, self.local_map, slam_map.pycolmap_camera, self._predict(), self._last_ids)
         timings["track"] = time.perf_counter() - t
         if not tr.tracked:
             record.status = LOST
+            self._last_ids = None
             self._consecutive_lost += 1
             msg = tr.reason
             if self._consecutive_lost >= self.config.max_lost_frames or len(self.local_map) == 0:
@@ -295,6 +297,7 @@ class Slam:
                 msg += f"; {self._consecutive_lost} frames lost: starting a new map segment"
             return self._result(record, LOST, msg, timings, matches=0, inliers=tr.num_inliers)
         self._consecutive_lost = 0
+        self._last_ids = tr.point3D_ids
         self._set_pose(record, self.last_keyframe, tr.cam_from_world, TRACKED, absolute=True)
         t = time.perf_counter()
         flow = flow_score(tr.ref_xy, tr.cur_xy, self.camera.fx, self.camera.fy)
@@ -376,6 +379,7 @@ class Slam:
                 rel[:3, 3] *= scale
 
     def _end_segment(self) -> None:
+        self._last_ids = None
         self.segment = None
         self.local_map = None
         self.last_keyframe = -1

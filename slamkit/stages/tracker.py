@@ -155,8 +155,10 @@ class Tracker:
         self._refinement = ref
 
     def step(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera,
-             predicted: np.ndarray | None = None) -> TrackingResult:
-        """Track ``frame``. predicted: (4, 4) cam_from_world from the motion model, or None."""
+             predicted: np.ndarray | None = None, last_ids: np.ndarray | None = None) -> TrackingResult:
+        """Track ``frame``. predicted: (4, 4) cam_from_world from the motion model, or None; last_ids: map
+        points tracked in the previous frame — the wide motion-model search looks for these only
+        (ORB-SLAM's TrackWithMotionModel), the local-map search then covers all points with a small radius."""
         c = self.config
         if len(local_map) < c.min_inliers:
             return _lost(f"local map has only {len(local_map)} points", "none")
@@ -170,6 +172,10 @@ class Tracker:
         num_matches = 0
         if predicted is not None:
             idx, uv = local_map.project(predicted, K, size)
+            if last_ids is not None and len(last_ids) >= 2 * c.min_inliers:
+                keep = np.isin(local_map.ids[idx], last_ids)
+                if keep.sum() >= 2 * c.min_inliers:
+                    idx, uv = idx[keep], uv[keep]
             pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
                                  c.search_radius_px, c.matching)
             num_matches = len(pairs)
