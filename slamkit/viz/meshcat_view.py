@@ -18,8 +18,9 @@ keyframes and the posed frames' path) and, on every :meth:`MapView.update`, send
 Colours: recency from green (first keyframe) through yellow to red (last keyframe), by timestamp, for
 frustums, path and viewing directions alike; the current frame is blue; the selected track is magenta.
 The map is shown in a display frame (x right, y forward, z up of the first keyframe's camera) centred and
-scaled so it spans about six units (one ``set_transform`` of the root): "Reset camera" refits it and puts
-the viewer's camera back behind and above the first keyframe; no geometry but the frustums is re-sent.
+scaled so it spans about six units (one ``set_transform`` of the root), refitted when the map outgrows it
+or is normalized (only the frustums are re-sent then); "Reset camera" refits it and puts the viewer's
+camera back behind and above the first keyframe.
 
 Geometry goes to meshcat as 3xN float32 (positions and colours in [0, 1]); ``Nx3`` would be drawn as garbage.
 """
@@ -223,12 +224,15 @@ class UpdateStats:
     points_sent: int = 0
     objects_sent: int = 0
     bytes_sent: int = 0
+    refit: bool = False
+    """The display fit (centre and scale of the map in the viewer) was recomputed."""
 
     def __str__(self) -> str:
         return (f"{self.mode}: {self.total_s * 1e3:.1f} ms (read {self.read_s * 1e3:.1f}, diff "
                 f"{self.diff_s * 1e3:.1f}, send {self.send_s * 1e3:.1f}); {self.keyframes} keyframes "
                 f"({self.dirty_keyframes} dirty), {self.points} points ({self.points_read} read, "
-                f"{self.points_sent} sent in {self.chunks_sent} groups), {self.objects_sent} objects")
+                f"{self.points_sent} sent in {self.chunks_sent} groups), {self.objects_sent} objects"
+                + (", refitted" if self.refit else ""))
 
 
 # ---------------------------------------------------------------------------------------------- reading
@@ -573,7 +577,6 @@ class MapView:
         # ---- diff against what the scene shows
         t_diff = time.perf_counter()
         new_intro = _introductions(new_ids, observers, first_new, newest)
-        refit = self._fit is None or (full and (new_map or many_moved))
         tol = self.move_tolerance * (self._fit[1] if self._fit is not None else 1.0)
         krows = known_rows[is_known]
         k_xyz = r_xyz[is_known]
@@ -594,8 +597,10 @@ class MapView:
         path_changed = (len(state.path_times) != len(self._path_t)
                         or not np.array_equal(state.path_centers, self._path_c))
         self._path_t, self._path_c = state.path_times.copy(), state.path_centers.copy()
+        refit = self._refit_needed(full)
         if refit:
-            self._fit = self._compute_fit()
+            self._fit = refit if isinstance(refit, tuple) else self._compute_fit()
+            st.refit = True
         st.diff_s = time.perf_counter() - t_diff
 
         # ---- send
@@ -713,7 +718,7 @@ class MapView:
     def _send_camera_home(self) -> None:
         """The viewer's camera behind and above the first keyframe, looking at the map's centre."""
         cam = self.vis["/Cameras/default/rotated/<object>"]
-        offset = DISPLAY_EXTENT * np.array([0.3, -1.2, 0.75])  # viewer axes: x right, y forward, z up
+        offset = DISPLAY_EXTENT * np.array([0.25, -0.9, 0.55])  # viewer axes: x right, y forward, z up
         cam.set_property("position", [float(offset[0]), float(offset[2]), float(-offset[1])])  # three.js is y-up
 
     # ------------------------------------------------------------------ what is in the scene
@@ -792,6 +797,22 @@ class MapView:
         if not np.isfinite(extent) or extent <= 1e-9:
             extent = 1.0
         return (lo + hi) / 2, extent
+
+    def _refit_needed(self, full: bool) -> bool | tuple[np.ndarray, float]:
+        """Whether the display fit no longer frames the map: none yet; or (every point read) the map's
+        extent changed by more than -40 % / +25 % or its centre moved by a quarter of it (growth, bundle
+        adjustment's normalization); or (incremental) a camera left the fitted box by 20 %.
+        Returns the new fit when it was computed."""
+        if self._fit is None:
+            return True
+        c, ext = self._fit
+        if full:
+            cand = self._compute_fit()
+            if not (0.6 * ext <= cand[1] <= 1.25 * ext) or np.abs(cand[0] - c).max() > 0.25 * ext:
+                return cand
+            return False
+        centres = np.concatenate([self._kf_centers(), self._path_c])
+        return bool(len(centres)) and bool(np.abs(centres - c).max() > 0.6 * ext)
 
     def _send_fit(self) -> None:
         self.root.set_transform(self.display_from_map)
