@@ -28,6 +28,9 @@ from .stages.mapper import Mapper
 from .stages.tracker import LocalMap, Tracker
 from .types import Frame, Trajectory
 
+RETRACK_BELOW_KEYFRAMES = 5
+"""Frames tracked while the map had fewer keyframes are tracked again against the final map (finish)."""
+
 # frame statuses
 INITIALIZING, INITIALIZED, TRACKED, LOST, SKIPPED = "initializing", "initialized", "tracked", "lost", "skipped"
 
@@ -90,11 +93,13 @@ class FrameRecord:
 
 @dataclass(eq=False)
 class Segment:
-    """One map segment: its map and the frames posed in it."""
+    """One map segment: its map, the frames posed in it, and the features of the frames posed at
+    initialization (re-tracked against the final map by ``Slam.finish``)."""
 
     id: int
     slam_map: SlamMap
     frames: list[int] = field(default_factory=list)
+    initial_frames: list[FrameFeatures] = field(default_factory=list)
 
 
 Callback = Callable[["Slam", StepResult], None]
@@ -235,7 +240,8 @@ class Slam:
             record.status = INITIALIZING
             return self._result(record, INITIALIZING, res.reason, timings)
         # a new segment with the two initial keyframes; pose the rest of the window by tracking
-        seg = Segment(len(self.segments), res.slam_map)
+        seg = Segment(len(self.segments), res.slam_map,
+                      initial_frames=[f for f in res.frames if f.index not in (res.first, res.second)])
         self.segments.append(seg)
         self.segment = seg
         by_index = {f.index: f for f in res.frames}
@@ -299,6 +305,8 @@ class Slam:
         self._consecutive_lost = 0
         self._last_ids = tr.point3D_ids
         self._set_pose(record, self.last_keyframe, tr.cam_from_world, TRACKED, absolute=True)
+        if slam_map.num_keyframes < RETRACK_BELOW_KEYFRAMES:  # young map: track again in finish()
+            seg.initial_frames.append(ff)
         t = time.perf_counter()
         flow = flow_score(tr.ref_xy, tr.cur_xy, self.camera.fx, self.camera.fy)
         decision = self.selector.step(flow, tr.ref_matches, tr.num_inliers, self._points_at_last_keyframe)
@@ -387,20 +395,44 @@ class Slam:
         self.initializer.reset()
 
     def finish(self) -> None:
-        """End of the run: a last global BA of every segment (when configured)."""
+        """End of the run: a last global BA of every segment (when configured), then the frames posed at
+        initialization (against a two-keyframe map) are tracked again against the final map."""
         if self.finished:
             return
         self.finished = True
-        if self.config.ba.final_global:
-            t = time.perf_counter()
-            for seg in self.segments:
-                if seg.slam_map.num_keyframes >= 3:
-                    bres = self.bundle_adjuster.adjust_global(seg.slam_map)
-                    if bres.normalization is not None:
-                        self._apply_normalization(seg, float(bres.normalization.scale))
-            dt = time.perf_counter() - t
-            self.timings["ba"] = self.timings.get("ba", 0.0) + dt
-            self.wall_time += dt
+        t = time.perf_counter()
+        for seg in self.segments:
+            if self.config.ba.final_global and seg.slam_map.num_keyframes >= 3:
+                bres = self.bundle_adjuster.adjust_global(seg.slam_map)
+                if bres.normalization is not None:
+                    self._apply_normalization(seg, float(bres.normalization.scale))
+        self.timings["ba"] = self.timings.get("ba", 0.0) + time.perf_counter() - t
+        t2 = time.perf_counter()
+        for seg in self.segments:
+            self._retrack_initial_frames(seg)
+        self.timings["track"] = self.timings.get("track", 0.0) + time.perf_counter() - t2
+        self.wall_time += time.perf_counter() - t
+
+    def _retrack_initial_frames(self, seg: Segment) -> None:
+        """Track the frames posed while the map was young again, against the final map around the first
+        keyframes (their first poses came from a two- or three-keyframe map)."""
+        if not seg.initial_frames or seg.slam_map.num_keyframes < 3:
+            return
+        slam_map = seg.slam_map
+        first_kf = min(slam_map.keyframes)
+        local_map = LocalMap.build(slam_map, first_kf, self.config.tracker.local_keyframes)
+        for f in seg.initial_frames:
+            rec = self.records[f.index]
+            tr = self.tracker.step(f, local_map, slam_map.pycolmap_camera, self.pose_of(rec))
+            if tr.tracked:
+                ref = np.eye(4)
+                ref[:3] = slam_map.cam_from_world(first_kf).matrix()
+                rec.ref_image_id, rec.rel_pose, rec.segment, rec.status = (first_kf, tr.cam_from_world @ np.linalg.inv(ref),
+                                                                            seg.id, TRACKED)
+                if rec.index not in seg.frames:
+                    seg.frames.append(rec.index)
+        seg.frames.sort()
+        seg.initial_frames = []  # done: features are no longer needed
 
     def _result(self, rec: FrameRecord, status: str, message: str, timings: dict,
                 decision: KeyframeDecision | None = None, **kw) -> StepResult:

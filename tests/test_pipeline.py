@@ -178,3 +178,56 @@ def test_kitti_07():
     s = slam.summary()
     assert s["fraction_posed"] >= 0.95
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 1.0    # metres over a 90 m drive
+
+
+class _Interrupted:
+    """Wraps a source: frames in ``bad`` come out black (covered lens) or as unrelated random texture."""
+
+    def __init__(self, source, bad: range, kind: str):
+        self.source, self.bad, self.kind = source, bad, kind
+        self.name, self.camera = f"{source.name}+{kind}", source.camera
+        self.timestamps, self.frame_ids, self.gt_poses = source.timestamps, source.frame_ids, source.gt_poses
+
+    def __len__(self):
+        return len(self.source)
+
+    def __getitem__(self, i):
+        from dataclasses import replace
+
+        import cv2
+
+        f = self.source[i]
+        if i not in self.bad:
+            return f
+        if self.kind == "black":
+            return replace(f, gray=np.zeros_like(f.gray), color=np.zeros_like(f.color))
+        rng = np.random.default_rng(i)
+        gray = cv2.GaussianBlur(rng.integers(0, 256, f.gray.shape, dtype=np.uint8), (5, 5), 1.5)
+        return replace(f, gray=gray, color=np.dstack([gray] * 3))
+
+
+def test_black_frames_are_skipped_and_tracking_resumes_in_the_same_map():
+    src = _Interrupted(open_source("synthetic:handheld?frames=120"), range(60, 66), "black")
+    slam = Slam(src, SlamConfig(max_lost_frames=5).with_overrides(init_frames=10))
+    results = slam.run()
+    bad = [r for r in results if 60 <= r.frame_index < 66]
+    assert all(r.status == "skipped" and not r.has_pose and "featureless" in r.message for r in bad)
+    assert all(r.status == "tracked" for r in results[70:])
+    assert len(slam.segments) == 1
+    assert ate(src.source.ground_truth(), slam.trajectory()).rmse < 0.01
+
+
+def test_lost_tracking_starts_a_new_segment_and_saves_both(tmp_path):
+    src = _Interrupted(open_source("synthetic:handheld?frames=150"), range(60, 72), "unrelated")
+    slam = Slam(src, SlamConfig(max_lost_frames=5).with_overrides(init_frames=10))
+    results = slam.run()
+    assert all(r.status in ("lost", "initializing") for r in results[60:72])
+    assert any("new map segment" in r.message for r in results[60:72])
+    s = slam.summary()
+    assert len(s["segments"]) == 2, s["segments"]
+    assert s["segments"][0]["last_frame"] < 60 and s["segments"][1]["first_frame"] >= 65
+    slam.save(tmp_path / "run")
+    for k in (0, 1):
+        assert (tmp_path / "run" / "segments" / f"segment_{k:02d}" / "trajectory_tum.txt").exists()
+    for seg in slam.segments:  # each segment is accurate in its own frame
+        assert ate(src.source.ground_truth(), slam.trajectory(segment=seg.id)).rmse < 0.02
