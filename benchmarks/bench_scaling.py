@@ -7,6 +7,7 @@ keeps adding keyframes and points) and records for every frame:
 * ``step_s``   wall time of ``Slam.step()`` (includes rendering the synthetic frame, ~0.1-0.3 s here),
 * ``slam_s``   the same without the ``read`` stage (rendering), i.e. what the SLAM itself costs,
 * ``cpu_s``    process CPU time of the step (all threads; less sensitive to other jobs on the machine),
+* the seconds of each stage of ``StepResult.timings`` (``t_track``, ``t_ba``, ...) and the BA it ran,
 * keyframes and 3D points of the map, and (every ``--sample`` frames) the resident set size (current from
   ``/proc/self/statm``, peak from ``resource.getrusage``).
 
@@ -50,7 +51,10 @@ RESULTS = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
 TARGET_RATIO = 1.5
 """Target: mean SLAM time per frame of the last window <= 1.5 x that of the first window."""
 
-FRAME_FIELDS = ["frame", "status", "is_keyframe", "step_s", "slam_s", "cpu_s", "keyframes", "points3D", "rss_mb"]
+STAGES = ("read", "features", "initialize", "track", "local_map", "keyframe", "map", "ba")
+"""Stages of ``StepResult.timings`` written per frame (``t_<stage>`` seconds; anything else in ``t_other``)."""
+FRAME_FIELDS = ["frame", "status", "is_keyframe", "ba", "step_s", "slam_s", "cpu_s", "keyframes", "points3D",
+                "rss_mb", *(f"t_{k}" for k in STAGES), "t_other"]
 
 
 def rss_mb() -> float:
@@ -72,6 +76,43 @@ def _write_frames(path: Path, rows: list[dict]) -> None:
         w.writeheader()
         w.writerows(rows)
     os.replace(tmp, path)
+
+
+def window_stats(rows: list[dict], window: int) -> dict:
+    """Mean/median SLAM time (ms) of the first and last ``window`` frames of per-frame ``rows`` and ratios."""
+    slam_s = np.array([float(x["slam_s"]) for x in rows])
+    step_s = np.array([float(x["step_s"]) for x in rows])
+    cpu_s = np.array([float(x["cpu_s"]) for x in rows])
+    n = len(rows)
+    window = min(window, max(1, n // 4))
+    first, last = slice(0, window), slice(n - window, n)
+    ratio = slam_s[last].mean() / slam_s[first].mean()
+    return {
+        "frames_run": n, "window": window,
+        "mean_slam_first_ms": 1e3 * slam_s[first].mean(), "mean_slam_last_ms": 1e3 * slam_s[last].mean(),
+        "ratio_mean": ratio,
+        "median_slam_first_ms": 1e3 * np.median(slam_s[first]), "median_slam_last_ms": 1e3 * np.median(slam_s[last]),
+        "ratio_median": np.median(slam_s[last]) / np.median(slam_s[first]),
+        "mean_cpu_first_ms": 1e3 * cpu_s[first].mean(), "mean_cpu_last_ms": 1e3 * cpu_s[last].mean(),
+        "ratio_cpu": cpu_s[last].mean() / cpu_s[first].mean(),
+        "mean_step_incl_render_first_ms": 1e3 * step_s[first].mean(),
+        "mean_step_incl_render_last_ms": 1e3 * step_s[last].mean(),
+        "max_slam_ms": 1e3 * slam_s.max(), "p99_slam_ms": 1e3 * np.percentile(slam_s, 99),
+        "target_ratio": TARGET_RATIO, "pass_ratio": bool(ratio <= TARGET_RATIO),
+        "fps_slam": n / slam_s.sum(),
+    }
+
+
+def summarize_csv(path: Path, window: int = 500) -> dict:
+    """Window statistics of a per-frame CSV written by :func:`run_scaling` (also of a run stopped early)."""
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    out = window_stats(rows, window)
+    rss = [float(x["rss_mb"]) for x in rows if x["rss_mb"]]
+    out |= {"max_sampled_rss_mb": max(rss) if rss else None, "keyframes": int(rows[-1]["keyframes"]),
+            "points3D": int(rows[-1]["points3D"]),
+            "fraction_not_lost": float(np.mean([x["status"] not in ("lost", "skipped") for x in rows]))}
+    return out
 
 
 def run_scaling(spec: str, *, window: int = 500, sample: int = 50, use_tracemalloc: bool = False,
@@ -96,7 +137,9 @@ def run_scaling(spec: str, *, window: int = 500, sample: int = 50, use_tracemall
         i = len(rows)
         row = {"frame": i, "status": r.status, "is_keyframe": int(r.is_keyframe), "step_s": round(step_s, 6),
                "slam_s": round(step_s - r.timings.get("read", 0.0), 6), "cpu_s": round(cpu_s, 6),
-               "keyframes": r.num_keyframes, "points3D": r.num_points, "rss_mb": ""}
+               "keyframes": r.num_keyframes, "points3D": r.num_points, "rss_mb": "", "ba": r.ba,
+               **{f"t_{k}": round(r.timings.get(k, 0.0), 6) for k in STAGES},
+               "t_other": round(sum(v for k, v in r.timings.items() if k not in STAGES), 6)}
         if i % sample == 0 or i == n - 1:
             row["rss_mb"] = round(rss_mb(), 1)
             rss_samples.append((i, row["rss_mb"]))
@@ -117,27 +160,12 @@ def run_scaling(spec: str, *, window: int = 500, sample: int = 50, use_tracemall
     traj = slam.trajectory()
     gt = source.ground_truth()
     ate_rmse = float(ate(gt, traj, align="sim3").rmse) if len(traj) >= 3 else None
-    slam_s = np.array([x["slam_s"] for x in rows])
-    step_s = np.array([x["step_s"] for x in rows])
-    cpu_s = np.array([x["cpu_s"] for x in rows])
-    first, last = slice(0, window), slice(n - window, n)
-    out = {
-        "sequence": source.name, "spec": spec, "frames": n, "window": window,
-        "mean_slam_first_ms": 1e3 * slam_s[first].mean(), "mean_slam_last_ms": 1e3 * slam_s[last].mean(),
-        "ratio_mean": slam_s[last].mean() / slam_s[first].mean(),
-        "median_slam_first_ms": 1e3 * np.median(slam_s[first]), "median_slam_last_ms": 1e3 * np.median(slam_s[last]),
-        "ratio_median": np.median(slam_s[last]) / np.median(slam_s[first]),
-        "mean_cpu_first_ms": 1e3 * cpu_s[first].mean(), "mean_cpu_last_ms": 1e3 * cpu_s[last].mean(),
-        "ratio_cpu": cpu_s[last].mean() / cpu_s[first].mean(),
-        "mean_step_incl_render_first_ms": 1e3 * step_s[first].mean(),
-        "mean_step_incl_render_last_ms": 1e3 * step_s[last].mean(),
-        "max_slam_ms": 1e3 * slam_s.max(), "p99_slam_ms": 1e3 * np.percentile(slam_s, 99),
-        "target_ratio": TARGET_RATIO, "pass_ratio": bool(slam_s[last].mean() / slam_s[first].mean() <= TARGET_RATIO),
+    out = {"sequence": source.name, "spec": spec, "frames": n} | window_stats(rows, window) | {
         "peak_rss_mb": peak_rss_mb(), "rss_first_mb": rss_samples[0][1], "rss_last_mb": rss_samples[-1][1],
         "keyframes": summary["keyframes"], "points3D": summary["points3D"], "segments": len(summary["segments"]),
         "fraction_posed": summary["fraction_posed"], "fraction_posed_main": len(traj) / n,
         "ate_rmse_m": ate_rmse, "path_length_m": gt.path_length if gt is not None else None,
-        "loop_wall_s": loop_s, "final_global_ba_s": finish_s, "fps_slam": n / slam_s.sum(),
+        "loop_wall_s": loop_s, "final_global_ba_s": finish_s,
         "timings_s": summary["timings_s"], "rss_samples": rss_samples,
         "date": time.strftime("%Y-%m-%d %H:%M"), "cpu_count": os.cpu_count(), "load_avg_at_end": os.getloadavg(),
     }
@@ -166,7 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--tracemalloc", action="store_true",
                     help="also trace Python allocations (slows the run; misses pycolmap's C++ memory)")
     ap.add_argument("--config", default="default", help="slamkit preset")
+    ap.add_argument("--summarize", type=Path, metavar="FRAMES_CSV",
+                    help="do not run: print the window statistics of a per-frame CSV (e.g. of a stopped run)")
     args = ap.parse_args(argv)
+    if args.summarize:
+        print(json.dumps(summarize_csv(args.summarize, args.window), indent=2, default=float))
+        return 0
     spec = f"synthetic:{args.motion}?frames={args.frames}&seed={args.seed}&noise={args.noise:g}"
     config = SlamConfig() if args.config == "default" else SlamConfig.preset(args.config)
     tag = f"{args.motion}{args.frames}"
@@ -181,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"| {out['frames']} | {out['mean_slam_first_ms']:.1f} | {out['mean_slam_last_ms']:.1f} | "
           f"{out['ratio_mean']:.2f} {'PASS' if out['pass_ratio'] else 'FAIL'} | {out['ratio_median']:.2f} | "
           f"{out['ratio_cpu']:.2f} | {out['peak_rss_mb']:.0f} | {out['keyframes']} | {out['points3D']} | "
-          f"{100 * out['fraction_posed']:.1f} % | {out['ate_rmse_m'] if out['ate_rmse_m'] is None else round(out['ate_rmse_m'], 4)} |")
+          f"{100 * out['fraction_posed']:.1f} % | "
+          f"{'-' if out['ate_rmse_m'] is None else round(out['ate_rmse_m'], 4)} |")
     print(f"\nfinal global BA {out['final_global_ba_s']:.1f} s; stage seconds: "
           + ", ".join(f"{k} {v:.1f}" for k, v in sorted(out["timings_s"].items(), key=lambda kv: -kv[1])))
     print(f"wrote {RESULTS / f'scaling_{tag}.csv'} and scaling_{tag}_frames.csv")
