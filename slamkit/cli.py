@@ -1,4 +1,4 @@
-"""Command line: ``slamkit run | eval | gt | presets`` — thin callers of the library."""
+"""Command line: ``slamkit run | eval | ablate | gt | presets`` — thin callers of the library."""
 
 from __future__ import annotations
 
@@ -98,9 +98,19 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
+    run = Path(args.run)
+    if run.is_dir() and not args.json_only:
+        from .eval.report import evaluate_run
+
+        result = evaluate_run(run, gt=args.gt, max_dt=args.max_dt, map_view=not args.no_map_view)
+        a, k = result["all_frames"]["ate"], (result.get("keyframes") or {}).get("ate")
+        print(f"ATE RMSE {100 * a['rmse']:.2f} cm over {a['count']} frames"
+              + (f", {100 * k['rmse']:.2f} cm over {k['count']} keyframes" if k else "")
+              + f" (Sim(3)-aligned); report: {result['report_md']} and {result['report_html']}", file=sys.stderr)
+        print(json.dumps(result, indent=2))
+        return 0
     from .eval import evaluate
 
-    run = Path(args.run)
     est = run / "trajectory_tum.txt" if run.is_dir() else run
     gt = Path(args.gt) if args.gt else run / "groundtruth_tum.txt"
     if not gt.exists():
@@ -108,6 +118,50 @@ def cmd_eval(args: argparse.Namespace) -> int:
     result = evaluate(est, gt, max_dt=args.max_dt)
     print(json.dumps(result, indent=2))
     return 0
+
+
+def cmd_ablate(args: argparse.Namespace) -> int:
+    from .ablate import STATUS_OK, connect, parse_grid, plan, sweep
+
+    items = list(args.grid)
+    if args.features:
+        items.append(f"features={args.features}")
+    grid = parse_grid(items)
+    tasks = plan(args.sources, grid, args.repeats)
+    executor, client = ("serial" if args.workers == 0 else "local"), None
+    if args.scheduler:
+        executor = client = connect(args.scheduler)
+    print(f"slamkit ablate: {len(args.sources)} source(s) x {len(grid)} combination(s) x {args.repeats} "
+          f"repeat(s) = {len(tasks)} runs on {args.scheduler or (f'{args.workers} local processes' if args.workers else 'all cores' if args.workers is None else 'this process')} -> {args.out}",
+          file=sys.stderr)
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(tasks), unit="run", disable=args.quiet, dynamic_ncols=True)
+
+    def progress(row: dict) -> None:
+        bar.update(1)
+        if row["status"] != STATUS_OK:
+            tqdm.write(f"run {row.get('key')} {row['status']}: {row['error']}", file=sys.stderr)
+
+    try:
+        df = sweep(args.sources, grid, args.out, executor, repeats=args.repeats, workers=args.workers,
+                   retry_failed=args.retry_failed, on_result=progress)
+    except KeyboardInterrupt:
+        print(f"slamkit ablate: interrupted; finished runs are kept in {args.out}/runs/ — run the same command "
+              "again to finish the sweep", file=sys.stderr)
+        return 130
+    finally:
+        bar.close()
+        if client is not None:
+            client.close()
+    ok = int((df["status"] == STATUS_OK).sum())
+    print(f"{ok}/{len(df)} runs ok ({int(df['cached'].sum())} reused from an earlier sweep); "
+          f"{args.out}/results.csv, results.md, effects.png", file=sys.stderr)
+    from .ablate import markdown_table
+
+    cols = ["source", *grid.names, "seed", "status", "ate_rmse_m", "fraction_posed", "keyframes", "fps", "error"]
+    print(markdown_table(df, cols))
+    return 0 if ok == len(df) else 1
 
 
 def cmd_gt(args: argparse.Namespace) -> int:
@@ -145,7 +199,22 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("run", help="run folder or trajectory file")
     e.add_argument("--gt", help="ground truth (TUM or KITTI); default RUN/groundtruth_tum.txt")
     e.add_argument("--max-dt", type=float, default=0.02)
+    e.add_argument("--no-map-view", action="store_true", help="link points.ply instead of a static 3D map page")
+    e.add_argument("--json-only", action="store_true", help="print the numbers only (no plots, no report)")
     e.set_defaults(func=cmd_eval)
+    a = sub.add_parser("ablate", help="run a parameter grid on sources (local processes or a dask cluster)")
+    a.add_argument("sources", nargs="+", metavar="SOURCE", help="sources as for `slamkit run`")
+    a.add_argument("--grid", nargs="+", default=[], metavar="NAME=V1,V2",
+                   help="parameter values to combine, e.g. flow_threshold=0.02,0.05 init_frames=10,20 "
+                        "(short names or dotted config paths; a single value fixes a parameter)")
+    a.add_argument("--features", help="extractors to compare, e.g. orb,sift")
+    a.add_argument("--repeats", type=int, default=1, help="runs per combination; repeat r uses seed r")
+    a.add_argument("--out", required=True, help="sweep folder (runs/*.json, results.csv/.parquet/.md, effects.png)")
+    a.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="run on this dask distributed cluster")
+    a.add_argument("--workers", type=int, help="local processes (default: all cores; 0 = in this process)")
+    a.add_argument("--retry-failed", action="store_true", help="run again the runs recorded as failed")
+    a.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    a.set_defaults(func=cmd_ablate)
     g = sub.add_parser("gt", help="write a source's ground truth as a TUM file")
     g.add_argument("source")
     g.add_argument("out")
