@@ -1,0 +1,224 @@
+"""Evaluation report of a run folder: ATE/RPE (Sim(3)) over all frames and over keyframes, plots, and a
+markdown + HTML page in the run folder.
+
+>>> result = evaluate_run("runs/demo")      # doctest: +SKIP
+>>> result["all_frames"]["ate"]["rmse"]     # metres                              # doctest: +SKIP
+
+Writes into ``RUN``: ``report.md``, ``report.html``, ``evaluation.json`` and ``plots/`` (trajectory
+top-down and side views coloured by error, error over time, time per stage), plus ``map.html`` (the
+static 3D map of :class:`slamkit.viz.meshcat_view.MapView`) when it can be made without a browser;
+otherwise the report links ``points.ply``. matplotlib and meshcat are imported only when plotting.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import SlamkitError
+from ..types import Trajectory
+from .metrics import ate, rpe
+
+__all__ = ["evaluate_run"]
+
+
+def _read(path: Path) -> Trajectory:
+    from ..io import read_trajectory
+
+    return read_trajectory(path)
+
+
+def _stats(gt: Trajectory, est: Trajectory, max_dt: float) -> tuple[dict, object, object]:
+    a = ate(gt, est, max_dt=max_dt)
+    try:
+        r = rpe(gt, est, max_dt=max_dt)
+        rd = r.to_dict()
+    except SlamkitError as e:  # too few matched poses for a pair
+        r, rd = None, {"error": str(e)}
+    return {"ate": a.to_dict(), "rpe": rd}, a, r
+
+
+def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None, *, max_dt: float = 0.02,
+                 plots: bool = True, map_view: bool = True) -> dict:
+    """ATE and RPE (Sim(3) alignment, evo's conventions; metres / degrees) of ``RUN/trajectory_tum.txt``
+    over all frames and of ``RUN/keyframes_tum.txt`` over keyframes, against ``gt`` (TUM or KITTI file;
+    default ``RUN/groundtruth_tum.txt``); writes the report (see the module docstring) and returns the
+    numbers with the paths written. SlamkitError naming the file when the run folder, its trajectory or
+    the ground truth is missing or too short to align."""
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise SlamkitError(f"{run}: not a run folder (expected the output folder of `slamkit run`)")
+    traj_path = run / "trajectory_tum.txt"
+    if not traj_path.exists():
+        raise SlamkitError(f"{traj_path}: missing; is {run} a slamkit run folder?")
+    gt_path = Path(gt) if gt is not None else run / "groundtruth_tum.txt"
+    if not gt_path.exists():
+        raise SlamkitError(f"{gt_path}: no ground truth; pass gt=FILE (--gt FILE)")
+    est, gt_traj = _read(traj_path), _read(gt_path)
+    summary = {}
+    if (run / "summary.json").exists():
+        summary = json.loads((run / "summary.json").read_text())
+    all_frames, a, r = _stats(gt_traj, est, max_dt)
+    kf_path = run / "keyframes_tum.txt"
+    keyframes, kf_traj = None, None
+    if kf_path.exists():
+        kf_traj = _read(kf_path)
+        try:
+            keyframes = _stats(gt_traj, kf_traj, max_dt)[0]
+        except SlamkitError as e:
+            keyframes = {"error": str(e)}
+    result = {
+        "run": str(run), "estimate": str(traj_path), "ground_truth": str(gt_path), "alignment": "sim3",
+        "max_dt": max_dt, "all_frames": all_frames, "keyframes": keyframes,
+        "frames": summary.get("frames"), "frames_posed": summary.get("frames_posed"),
+        "fraction_posed": summary.get("fraction_posed"), "num_keyframes": summary.get("keyframes"),
+        "points3D": summary.get("points3D"), "points_per_image": summary.get("points_per_image"),
+        "mean_reprojection_error_px": summary.get("mean_reprojection_error_px"),
+        "fps": summary.get("fps"), "wall_time_s": summary.get("wall_time_s"),
+        "timings_s": summary.get("timings_s", {}),
+    }
+    files: dict[str, str] = {}
+    if plots:
+        from . import plots as P
+
+        pdir = run / "plots"
+        aligned = a.alignment.apply(est.subset(a.idx_est))
+        gt_m = gt_traj.subset(a.idx_gt)
+        title = str(summary.get("source", run.name))
+        files["trajectory"] = P.plot_trajectory_views(gt_m.positions, aligned.positions, a.errors,
+                                                      pdir / "trajectory.png", title=title,
+                                                      gt_full_xyz=gt_traj.positions)
+        files["error_over_time"] = P.plot_error_over_time(
+            a.timestamps, a.errors, pdir / "error_over_time.png",
+            keyframe_t=kf_traj.timestamps if kf_traj is not None else None,
+            rpe_t=r.timestamps if r is not None else None,
+            rpe_errors=r.translation_errors if r is not None else None, title=title)
+        if result["timings_s"]:
+            files["timings"] = P.plot_timings(result["timings_s"], int(summary.get("frames") or 0),
+                                              pdir / "timings.png")
+    if map_view:
+        files["map"] = _map_view(run)
+    result["files"] = {k: str(Path(v).relative_to(run)) for k, v in files.items() if v is not None}
+    from ..io import atomic_write_text
+
+    atomic_write_text(run / "evaluation.json", json.dumps(result, indent=2, default=_json_default))
+    md, page = _report(result, run)
+    result["report_md"] = str(atomic_write_text(run / "report.md", md))
+    result["report_html"] = str(atomic_write_text(run / "report.html", page))
+    return result
+
+
+def _json_default(x):
+    if isinstance(x, (np.integer, np.floating)):
+        return x.item()
+    raise TypeError(type(x).__name__)
+
+
+def _map_view(run: Path) -> Path | None:
+    """``RUN/map.html`` from MapView (a local meshcat server, no browser), or None when that fails."""
+    if not (run / "sparse").exists():
+        return None
+    view = None
+    try:
+        from ..viz.meshcat_view import MapView
+
+        view = MapView()
+        view.load_run(run)
+        return view.export_html(run / "map.html")
+    except Exception:  # noqa: BLE001 - the viewer is optional: the report links points.ply instead
+        return None
+    finally:
+        if view is not None:
+            view.close()
+
+
+def _cm(x) -> str:
+    return "–" if x is None or not np.isfinite(x) else f"{100 * x:.2f}"
+
+
+def _row(name: str, part: dict | None) -> str:
+    if not part or "ate" not in part:
+        why = (part or {}).get("error", "no keyframes file")
+        return f"| {name} | – | – | – | – | – | – | {html.escape(why)} |"
+    a, rp = part["ate"], part["rpe"]
+    t = rp.get("translation", {}).get("rmse")
+    d = rp.get("rotation_deg", {}).get("rmse")
+    return (f"| {name} | {a['count']} | {_cm(a['rmse'])} | {_cm(a['mean'])} | {_cm(a['median'])} | {_cm(a['max'])} "
+            f"| {_cm(t)} cm, {d:.3f}° | scale {a['alignment'].get('scale', float('nan')):.4g} |"
+            if d is not None else
+            f"| {name} | {a['count']} | {_cm(a['rmse'])} | {_cm(a['mean'])} | {_cm(a['median'])} | {_cm(a['max'])} "
+            f"| – | scale {a['alignment'].get('scale', float('nan')):.4g} |")
+
+
+def _report(res: dict, run: Path) -> tuple[str, str]:
+    f = res["files"]
+    lines = [f"# Evaluation of `{run.name}`", "",
+             f"Estimate `{Path(res['estimate']).name}` against `{res['ground_truth']}`; Sim(3) alignment "
+             f"(Umeyama on the matched camera centres), timestamps matched within {res['max_dt']} s.", "",
+             "| poses | matched | ATE RMSE [cm] | mean | median | max | RPE (1 frame) RMSE | note |",
+             "|---|---|---|---|---|---|---|---|",
+             _row("all frames", res["all_frames"]), _row("keyframes", res["keyframes"]), ""]
+    if res.get("frames") is not None:
+        lines += ["| frames | posed | keyframes | 3D points | points / image | reprojection error [px] | frames/s |",
+                  "|---|---|---|---|---|---|---|",
+                  f"| {res['frames']} | {res['frames_posed']} ({100 * (res['fraction_posed'] or 0):.1f} %) | "
+                  f"{res['num_keyframes']} | {res['points3D']} | {res['points_per_image']:.0f} | "
+                  f"{res['mean_reprojection_error_px']:.3f} | {res['fps']:.2f} |", ""]
+    for key, caption in (("trajectory", "Trajectory against ground truth, coloured by position error"),
+                         ("error_over_time", "Position error over time (grey lines: keyframes)"),
+                         ("timings", "Time per pipeline stage")):
+        if key in f:
+            lines += [f"## {caption}", "", f"![{key}]({f[key]})", ""]
+    lines += ["## 3D map", ""]
+    if "map" in f:
+        lines += [f"[Open the static 3D map view]({f['map']}) (self-contained HTML, works offline).", ""]
+    if (run / "points.ply").exists():
+        lines += ["Point cloud: [points.ply](points.ply) (MeshLab, CloudCompare); COLMAP model in `sparse/`.", ""]
+    md = "\n".join(lines)
+    return md, _html(md, f)
+
+
+def _html(md: str, files: dict) -> str:
+    """The markdown as a small self-contained HTML page (tables, headings, images, links)."""
+    import re
+
+    body, table = [], []
+
+    def flush():
+        if table:
+            rows = [r for r in table if not re.match(r"^\|[-|]+\|$", r)]
+            cells = [[html.escape(c.strip()) for c in r.strip("|").split("|")] for r in rows]
+            out = ["<table>", "<tr>" + "".join(f"<th>{c}</th>" for c in cells[0]) + "</tr>"]
+            out += ["<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in cells[1:]]
+            body.append("\n".join(out + ["</table>"]))
+            table.clear()
+
+    for line in md.splitlines():
+        if line.startswith("|"):
+            table.append(line)
+            continue
+        flush()
+        if line.startswith("## "):
+            body.append(f"<h2>{html.escape(line[3:])}</h2>")
+        elif line.startswith("# "):
+            body.append(f"<h1>{html.escape(line[2:])}</h1>")
+        elif m := re.match(r"^!\[(.*)\]\((.*)\)$", line):
+            body.append(f'<img alt="{html.escape(m[1])}" src="{html.escape(m[2])}">')
+        elif line.strip():
+            text = html.escape(line)
+            text = re.sub(r"\[([^\]]+)\]\(([^)]+)\)", r'<a href="\2">\1</a>', text)
+            text = re.sub(r"`([^`]+)`", r"<code>\1</code>", text)
+            body.append(f"<p>{text}</p>")
+    flush()
+    if "map" in files:
+        body.append(f'<iframe src="{html.escape(files["map"])}" style="width:100%;height:520px;border:1px solid #ccc">'
+                    "</iframe>")
+    style = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
+             "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}"
+             "img{max-width:100%}code{background:#f4f4f4;padding:0 3px}")
+    return ("<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>slamkit evaluation</title>"
+            f"<style>{style}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")
