@@ -31,6 +31,8 @@ class SlamConfig:
     """Use every n-th frame of the source."""
     max_frames: int | None = None
     """Stop after this many (used) frames; None = all."""
+    relocalization_candidates: int = 3
+    """When the local map cannot track a frame, try this many most similar keyframes (0 disables)."""
     max_lost_frames: int = 30
     """After this many consecutive lost frames a new map segment is initialized."""
     thumbnail_width: int = 160

@@ -17,7 +17,7 @@ import numpy as np
 
 from .config import SlamConfig
 from .errors import ConfigError
-from .features import FrameFeatures, create_extractor, create_matcher
+from .features import FrameFeatures, create_extractor, create_matcher, image_signature
 from .map import SlamMap
 from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
@@ -59,6 +59,8 @@ class StepResult:
     timings: dict[str, float] = field(default_factory=dict)
     posed_frames: tuple[int, ...] = ()
     """Frames that received a pose with this step (the initialization window on success)."""
+    relocalized: bool = False
+    """The local map lost the frame and relocalization against all keyframes found it."""
 
     @property
     def has_pose(self) -> bool:
@@ -100,6 +102,9 @@ class Segment:
     slam_map: SlamMap
     frames: list[int] = field(default_factory=list)
     initial_frames: list[FrameFeatures] = field(default_factory=list)
+    signatures: dict[int, np.ndarray] = field(default_factory=dict)
+    """Global image signature of each keyframe (image id), for relocalization."""
+    relocalizations: int = 0
 
 
 Callback = Callable[["Slam", StepResult], None]
@@ -154,6 +159,7 @@ class Slam:
         self._cursor = 0
         self.timings: dict[str, float] = {}
         self.wall_time = 0.0
+        self.cpu_time = 0.0
         self.last_frame: Frame | None = None
         self.last_features: FrameFeatures | None = None
         self.last_result: StepResult | None = None
@@ -185,6 +191,7 @@ class Slam:
         if self.done:
             raise StopIteration("no frames left")
         t_start = time.perf_counter()
+        cpu_start = time.process_time()
         timings: dict[str, float] = {}
         t = time.perf_counter()
         frame = self.source[int(self.indices[self._cursor])]
@@ -202,6 +209,7 @@ class Slam:
         else:
             result = self._track(ff, record, timings)
         self.wall_time += time.perf_counter() - t_start
+        self.cpu_time += time.process_time() - cpu_start
         for k, v in timings.items():
             self.timings[k] = self.timings.get(k, 0.0) + v
         self.last_result = result
@@ -215,7 +223,8 @@ class Slam:
         h, w = frame.gray.shape
         ij = np.clip(np.round(feats.keypoints).astype(np.int64), 0, [w - 1, h - 1])
         colors = frame.color[ij[:, 1], ij[:, 0]]
-        return FrameFeatures(frame.index, frame.frame_id, frame.timestamp, feats, kp, colors)
+        return FrameFeatures(frame.index, frame.frame_id, frame.timestamp, feats, kp, colors,
+                             signature=image_signature(frame.gray))
 
     def _thumbnail(self, frame_index: int) -> np.ndarray | None:
         if self.config.thumbnail_width <= 0 or self.last_frame is None or self.last_frame.index != frame_index:
@@ -246,6 +255,8 @@ class Slam:
         self.segment = seg
         by_index = {f.index: f for f in res.frames}
         for image_id, kf in sorted(res.slam_map.keyframes.items()):
+            if by_index.get(kf.frame_index) is not None and by_index[kf.frame_index].signature is not None:
+                seg.signatures[image_id] = by_index[kf.frame_index].signature
             rec = self.records[kf.frame_index]
             self._set_pose(rec, image_id, np.eye(4), TRACKED)
             rec.keyframe_image_id = image_id
@@ -292,7 +303,14 @@ class Slam:
             timings["track"] = time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
         tr = self.tracker.step(ff, self.local_map, slam_map.pycolmap_camera, self._predict(), self._last_ids)
-        timings["track"] = time.perf_counter() - t
+        relocalized = False
+        if not tr.tracked and self.config.relocalization_candidates > 0:
+            t_reloc = time.perf_counter()
+            found = self._relocalize(ff)
+            timings["relocalize"] = time.perf_counter() - t_reloc
+            if found is not None:
+                tr, relocalized = found, True
+        timings["track"] = time.perf_counter() - t - timings.get("relocalize", 0.0)
         if not tr.tracked:
             record.status = LOST
             self._last_ids = None
@@ -312,7 +330,7 @@ class Slam:
         decision = self.selector.step(flow, tr.ref_matches, tr.num_inliers, self._points_at_last_keyframe)
         timings["keyframe"] = time.perf_counter() - t
         ba_kind = ""
-        message = tr.reason
+        message = (f"relocalized against keyframe {self.last_keyframe}: " if relocalized else "") + tr.reason
         is_kf = False
         if decision.is_keyframe:
             ff = FrameFeatures(ff.index, ff.frame_id, ff.timestamp, ff.features, ff.keypoints, ff.colors,
@@ -331,6 +349,8 @@ class Slam:
                 if bres.normalization is not None:
                     self._apply_normalization(seg, float(bres.normalization.scale))
                 self.last_keyframe = mres.image_id
+                if ff.signature is not None:
+                    seg.signatures[mres.image_id] = ff.signature
                 record.keyframe_image_id = mres.image_id
                 self._set_pose(record, mres.image_id, np.eye(4), TRACKED)
                 self._points_at_last_keyframe = slam_map.reconstruction.image(mres.image_id).num_points3D
@@ -340,7 +360,29 @@ class Slam:
             else:
                 decision = KeyframeDecision(False, f"keyframe rejected: {mres.reason}", flow, tr.ref_matches)
         return self._result(record, TRACKED, message, timings, decision=decision, matches=tr.ref_matches,
-                            inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind)
+                            inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
+                            relocalized=relocalized)
+
+    def _relocalize(self, ff: FrameFeatures):
+        """Localize a frame the local map could not track against the keyframes that look most alike
+        (global image signature), each with its own local map; on success tracking resumes there."""
+        seg = self.segment
+        if ff.signature is None or not seg.signatures:
+            return None
+        ids = [i for i in seg.signatures if i in seg.slam_map.keyframes and i != self.last_keyframe]
+        if not ids:
+            return None
+        scores = np.array([float(seg.signatures[i] @ ff.signature) for i in ids])
+        camera = seg.slam_map.pycolmap_camera
+        for k in np.argsort(-scores, kind="stable")[: self.config.relocalization_candidates]:
+            local_map = LocalMap.build(seg.slam_map, ids[k], self.config.tracker.local_keyframes)
+            tr = self.tracker.step(ff, local_map, camera, None)
+            if tr.tracked:
+                self.local_map, self.last_keyframe = local_map, ids[k]
+                self._points_at_last_keyframe = seg.slam_map.reconstruction.image(ids[k]).num_points3D
+                seg.relocalizations += 1
+                return tr
+        return None
 
     def _predict(self) -> np.ndarray | None:
         """Constant-velocity prediction from the last two posed frames of the current segment."""
@@ -510,10 +552,12 @@ class Slam:
             "points_per_image": slam_map.points_per_image() if slam_map else 0.0,
             "mean_reprojection_error_px": slam_map.mean_reprojection_error() if slam_map else 0.0,
             "segments": [{"id": s.id, "frames": len(s.frames), "first_frame": s.frames[0] if s.frames else None,
-                          "last_frame": s.frames[-1] if s.frames else None,
+                          "last_frame": s.frames[-1] if s.frames else None, "relocalizations": s.relocalizations,
                           "keyframes": s.slam_map.num_keyframes, "points3D": s.slam_map.num_points}
                          for s in self.segments],
             "main_segment": main.id if main else None,
+            "relocalizations": int(sum(s.relocalizations for s in self.segments)),
+            "cpu_time_s": self.cpu_time,
             "wall_time_s": self.wall_time,
             "fps": n / self.wall_time if self.wall_time > 0 else 0.0,
             "initialization_s": init_s,

@@ -231,3 +231,41 @@ def test_lost_tracking_starts_a_new_segment_and_saves_both(tmp_path):
         assert (tmp_path / "run" / "segments" / f"segment_{k:02d}" / "trajectory_tum.txt").exists()
     for seg in slam.segments:  # each segment is accurate in its own frame
         assert ate(src.source.ground_truth(), slam.trajectory(segment=seg.id)).rmse < 0.02
+
+
+class _Jump:
+    """Plays the frames of ``source`` in the order ``order`` (a sudden jump of the camera)."""
+
+    def __init__(self, source, order):
+        self.source, self.order = source, list(order)
+        self.name, self.camera = source.name + "+jump", source.camera
+        self.timestamps = np.arange(len(self.order)) / 30.0
+        self.frame_ids = np.asarray(self.order)
+        self.gt_poses = source.gt_poses[self.order]
+
+    def __len__(self):
+        return len(self.order)
+
+    def __getitem__(self, i):
+        from dataclasses import replace
+
+        return replace(self.source[self.order[i]], index=i, timestamp=float(self.timestamps[i]))
+
+    def ground_truth(self):
+        from slamkit.types import Trajectory
+
+        return Trajectory(self.timestamps, self.gt_poses)
+
+
+def test_relocalization_after_a_jump_back_to_a_mapped_place():
+    loop = open_source("synthetic:loop?frames=240")
+    src = _Jump(loop, list(range(0, 180)) + list(range(45, 70)))   # jump back to a place mapped long ago
+    # a small local map (the room is small: with the default, every keyframe is covisible and the local
+    # map itself recovers the jump); relocalization must find the place among all keyframes
+    slam = Slam(src, SlamConfig(max_lost_frames=30).with_overrides(init_frames=10, **{"tracker.local_keyframes": 2}))
+    results = slam.run()
+    after = results[180:]
+    assert any(r.relocalized for r in after), [r.message for r in after[:3]]
+    assert len(slam.segments) == 1 and slam.summary()["relocalizations"] >= 1
+    assert sum(r.has_pose for r in after) >= len(after) - 2
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.02

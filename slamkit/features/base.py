@@ -257,6 +257,20 @@ class FrameFeatures:
     keypoints: np.ndarray
     colors: np.ndarray
     thumbnail: np.ndarray | None = None
+    signature: np.ndarray | None = None
+    """(D,) float32 unit-norm global image signature (a tiny zero-mean thumbnail), for relocalization."""
 
     def __len__(self) -> int:
         return len(self.keypoints)
+
+
+def image_signature(gray: np.ndarray, size: tuple[int, int] = (32, 24)) -> np.ndarray:
+    """Global signature of an image for place recognition: the (w x h) area-downsampled grey image,
+    blurred, zero-mean and unit-norm, as (w*h,) float32. Similar views have a dot product near 1."""
+    import cv2
+
+    small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA).astype(np.float32)
+    small = cv2.GaussianBlur(small, (3, 3), 0).ravel()
+    small -= small.mean()
+    n = float(np.linalg.norm(small))
+    return small / n if n > 1e-6 else small
