@@ -11,6 +11,10 @@ interrupted sweep started again with the same arguments redoes only what is miss
 (bad source, a crash inside SLAM, a conflicting combination) never raises: its row has ``status="failed"``
 and the ``error``; a run lost with its worker (a killed process) is ``status="lost"`` and is not persisted,
 so the next sweep redoes it.
+
+On a dask cluster every worker needs slamkit (``pip install slamkit``) and the sources at the same paths
+(or ``synthetic:`` sources); results come back to this process, which writes them, so workers need no
+shared file system.
 """
 
 from __future__ import annotations
@@ -437,7 +441,8 @@ def write_results(df, out_dir: str | os.PathLike, params: Sequence[str]) -> dict
     if (df["status"] == STATUS_OK).any() and params:
         from .eval.plots import plot_effects
 
-        paths["effects"] = plot_effects(df, params, out_dir / "effects.png")
+        varied = [p for p in params if df[p].nunique(dropna=False) > 1] or list(params)
+        paths["effects"] = plot_effects(df, varied, out_dir / "effects.png")
         md += ["\n## Effect of each parameter\n", "![effects](effects.png)\n"]
     paths["md"] = atomic_write_text(out_dir / "results.md", "\n".join(md))
     return paths

@@ -106,10 +106,11 @@ def test_local_sweep_rows_files_and_ground_truth(local_sweep):
     bad = df[df["source"] == BAD_SOURCE]
     assert (bad["status"] == "failed").all() and bad["error"].str.contains("does not exist").all()
     assert len(list((out / "runs").glob("*.json"))) == 4
-    for name in ("results.csv", "results.parquet", "results.md", "effects.png", "sweep.json"):
+    for name in ("results.csv", "results.md", "effects.png", "sweep.json"):
         assert (out / name).stat().st_size > 0, name
     md = (out / "results.md").read_text()
     assert "## Failed runs" in md and "does not exist" in md and "effects.png" in md
+    pytest.importorskip("pyarrow")  # the dask extra; without it only CSV is written
     import pandas as pd
 
     back = pd.read_parquet(out / "results.parquet")

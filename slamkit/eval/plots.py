@@ -129,7 +129,7 @@ def plot_effects(df, params: Sequence[str], path: str | os.PathLike,
     params = [p for p in params if p in ok]
     metrics = [m for m in metrics if m[0] in ok]
     fig = Figure(figsize=(3.8 * max(len(params), 1), 2.7 * max(len(metrics), 1)), layout="constrained")
-    axes = fig.subplots(max(len(metrics), 1), max(len(params), 1), squeeze=False)
+    axes = fig.subplots(max(len(metrics), 1), max(len(params), 1), squeeze=False, sharex="col")
     for c, p in enumerate(params):
         values = list(dict.fromkeys(df[p].tolist()))
         numeric = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
