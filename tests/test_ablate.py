@@ -153,7 +153,7 @@ def test_cli_ablate_reuses_and_prints_table(local_sweep, capsys):
 
 # --------------------------------------------------------------------------------------------- dask
 
-def test_dask_cluster_same_rows_and_worker_killed(local_sweep, tmp_path):
+def test_dask_cluster_same_rows_and_worker_killed(local_sweep, tmp_path, capsys):
     distributed = pytest.importorskip("distributed")
     psutil = pytest.importorskip("psutil")
     _, local_df, _ = local_sweep
@@ -188,8 +188,12 @@ def test_dask_cluster_same_rows_and_worker_killed(local_sweep, tmp_path):
             assert (out / "runs" / name).read_bytes() == data
         # resume: whatever was lost with the worker is redone, nothing finished is
         df = sweep([SOURCE], grid, out, client)
+        # the CLI on the same cluster (everything is finished: nothing runs again)
+        assert main(["ablate", SOURCE, "--grid", *grid, "--scheduler", cluster.scheduler_address, "--out", str(out),
+                     "-q"]) == 0
     assert len(df) == 3 and (df["status"] == "ok").all(), df[["status", "error"]]
     assert df["cached"].sum() >= len(finished)
+    assert f"on {cluster.scheduler_address}" in capsys.readouterr().err
     # the same runs give the same rows on the cluster as on the local pool (same seeds)
     same = df[df["flow_threshold"] < 0.15].sort_values("flow_threshold")
     ref = local_df[local_df["source"] == SOURCE].sort_values("flow_threshold")
