@@ -332,8 +332,13 @@ def _execute(todo: list[Task], executor, workers: int | None, finished: Callable
         from concurrent.futures import ProcessPoolExecutor
 
         n = max(1, min(workers or os.cpu_count() or 1, len(todo)))
-        with ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn")) as pool:
+        pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+        try:
             _collect(pool, todo, finished)
+        except BaseException:  # interrupted: do not wait for the running runs (finished ones are saved)
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        pool.shutdown()
         return
     if isinstance(executor, str):
         raise ConfigError(f"executor {executor!r}: use 'local', 'serial', a dask Client or an Executor "
@@ -351,13 +356,18 @@ def _collect(executor, todo: list[Task], finished: Callable[[Task, dict], None])
         from concurrent.futures import as_completed
 
         futures = {executor.submit(_run_task, t): t for t in todo}
-    for fut in as_completed(list(futures)):
-        task = futures[fut]
-        try:
-            row = fut.result()
-        except Exception as e:  # noqa: BLE001 - the worker died (KilledWorker, BrokenProcessPool): not the run's fault
-            row = _lost_row(task, e)
-        finished(task, row)
+    try:
+        for fut in as_completed(list(futures)):
+            task = futures[fut]
+            try:
+                row = fut.result()
+            except Exception as e:  # noqa: BLE001 - the worker died (KilledWorker, BrokenProcessPool): not the run's fault
+                row = _lost_row(task, e)
+            finished(task, row)
+    except BaseException:  # interrupted: drop what has not run yet (a dask cluster would go on otherwise)
+        if _is_dask_client(executor):
+            executor.cancel(list(futures))
+        raise
 
 
 def connect(address: str):
