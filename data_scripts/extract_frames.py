@@ -4,7 +4,8 @@
     python data_scripts/extract_frames.py clip.mp4 data/clip --every 2 --max 300 [--width 960]
 
 Writes ``OUT/NNNNNN.png`` and ``OUT/times.txt`` (one timestamp in seconds per image, from the video's frame
-rate). Decoding uses OpenCV (a slamkit dependency); an unreadable video is a clear error (exit status 2).
+rate). slamkit's folder source times frames by ``fps`` (``open_folder(OUT, fps=VIDEO_FPS / EVERY)``); the
+printed line gives that rate. Decoding uses OpenCV (a slamkit dependency); an unreadable video is a clear error (exit status 2).
 A rerun replaces the frames.
 """
 
@@ -56,7 +57,7 @@ def extract_frames(video: str | Path, out: str | Path, every: int = 1, max_frame
     if n == 0:
         raise ExtractError(f"{video}: no frame could be decoded")
     (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in times))
-    log(f"{n} frames of {video} ({fps:.3g} fps, every {every}) -> {out}/")
+    log(f"{n} frames of {video} ({fps:.3g} fps, every {every}: {fps / every:.4g} fps) -> {out}/")
     return n
 
 
