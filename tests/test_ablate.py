@@ -70,6 +70,8 @@ def test_cli_reports_bad_grid(capsys, tmp_path):
     err = capsys.readouterr().err
     assert "init_frames" in err and "'ten'" in err and "Traceback" not in err
     assert not (tmp_path / "runs").exists()
+    assert main(["ablate", SOURCE, "--features", "orb,surf9", "--out", str(tmp_path)]) == 2
+    assert "surf9" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------------------------- runs
