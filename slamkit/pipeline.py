@@ -465,6 +465,8 @@ class Slam:
         local_map = LocalMap.build(slam_map, first_kf, self.config.tracker.local_keyframes)
         for f in seg.initial_frames:
             rec = self.records[f.index]
+            if rec.keyframe_image_id > 0:  # keyframes are posed by bundle adjustment
+                continue
             tr = self.tracker.step(f, local_map, slam_map.pycolmap_camera, self.pose_of(rec))
             if tr.tracked:
                 ref = np.eye(4)

@@ -17,7 +17,8 @@ nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipykernel")
 psutil = pytest.importorskip("psutil")
 
-NOTEBOOKS = sorted((Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb"))
+NOTEBOOKS = sorted(p for p in (Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb")
+                   if p.stem != "03_ablation")  # executed with its own checks in tests/test_ablate.py
 
 FAST = {"max_frames": 40, "frame_skip": 2, "init_frames": 10}
 """Overrides of the notebooks' parameters for a quick run (names a notebook does not use are harmless)."""
