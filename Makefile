@@ -16,7 +16,6 @@ install: $(VENV)/.installed
 
 demo: install
 	$(VENV)/bin/slamkit run default --out $(OUT)
-	@echo "outputs in $(OUT)/ (trajectory_tum.txt, sparse/, points.ply, summary.json)"
 
 test: install
 	$(PY) -m pytest -q
