@@ -30,6 +30,7 @@ import csv
 import json
 import os
 import resource
+import signal
 import sys
 import time
 import tracemalloc
@@ -130,7 +131,13 @@ def run_scaling(spec: str, *, window: int = 500, sample: int = 50, use_tracemall
     rss_samples: list[tuple[int, float]] = []
     t_run = time.perf_counter()
     print(f"[scaling] {source.name}: {n} frames, window {window}", flush=True)
-    while not slam.done:
+    stop = []
+
+    def on_signal(signum, _frame):  # SIGTERM/SIGINT: finish the current frame, save what was run, summarize it
+        stop.append(signal.Signals(signum).name)
+
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    while not slam.done and not stop:
         t0, c0 = time.perf_counter(), time.process_time()
         r = slam.step()
         step_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
@@ -150,11 +157,20 @@ def run_scaling(spec: str, *, window: int = 500, sample: int = 50, use_tracemall
                   f"{1e3 * recent:.1f} ms/frame (SLAM), {r.num_keyframes} keyframes, {r.num_points} points, "
                   f"RSS {rss_mb():.0f} MB, status {r.status}", flush=True)
             _write_frames(frames_csv, rows)
+    for sig, handler in old.items():
+        signal.signal(sig, handler)
     loop_s = time.perf_counter() - t_run
+    _write_frames(frames_csv, rows)
+    if stop:
+        print(f"[scaling] stopped by {stop[0]} after {len(rows)} frames; summary of the frames run:", flush=True)
+        out = summarize_csv(frames_csv, window) | {"stopped_by": stop[0], "loop_wall_s": loop_s,
+                                                    "peak_rss_mb": peak_rss_mb()}
+        atomic_write_text(RESULTS / f"scaling_{tag}_partial.json", json.dumps(out, indent=2, default=float))
+        print(json.dumps(out, indent=2, default=float))
+        raise SystemExit(1)
     t0 = time.perf_counter()
     slam.finish()
     finish_s = time.perf_counter() - t0
-    _write_frames(frames_csv, rows)
 
     summary = slam.summary()
     traj = slam.trajectory()
