@@ -201,7 +201,8 @@ def bench_sequence(seq: Sequence, *, config="default", colmap: bool = True, colm
         rows.append({
             "sequence": seq.name, "method": "COLMAP 4.2 incremental (run here)", "frames": cm.frames,
             "ate_rmse_m": cm.ate_rmse_m, "fraction_posed": cm.fraction_registered, "wall_time_s": cm.wall_time_s,
-            "fps": cm.fps, "ate_ratio_vs_colmap": 1.0 if cm.ate_rmse_m else None, "speedup_vs_colmap": 1.0,
+            "fps": cm.fps, "cpu_time_s": cm.cpu_time_s,
+            "ate_ratio_vs_colmap": 1.0 if cm.ate_rmse_m else None, "speedup_vs_colmap": 1.0,
             "pass_ate": "", "pass_posed": "", "pass_fps": "", "pass_speedup": "",
             "note": "; ".join(x for x in (f"SIFT {cm.conf['max_num_features']}, sequential overlap "
                                           f"{cm.conf['overlap']}, fixed intrinsics, run {cm.date}", cm_note) if x),
@@ -225,9 +226,10 @@ def bench_sequence(seq: Sequence, *, config="default", colmap: bool = True, colm
 
 
 def print_table(rows: list[dict]) -> str:
-    head = ["sequence", "method", "ATE (m)", "posed", "wall (s)", "fps", "ATE/COLMAP", "speed-up",
+    head = ["sequence", "method", "ATE (m)", "posed", "wall (s)", "CPU (s)", "fps", "ATE/COLMAP", "speed-up",
             "ATE<=0.8x", "posed>=98%", "fps>=30", ">=20x", "ATE/best"]
-    keys = ["sequence", "method", "ate_rmse_m", "fraction_posed", "wall_time_s", "fps", "ate_ratio_vs_colmap",
+    keys = ["sequence", "method", "ate_rmse_m", "fraction_posed", "wall_time_s", "cpu_time_s", "fps",
+            "ate_ratio_vs_colmap",
             "speedup_vs_colmap", "pass_ate", "pass_posed", "pass_fps", "pass_speedup", "ate_ratio_vs_best"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
@@ -236,7 +238,7 @@ def print_table(rows: list[dict]) -> str:
             v = r[k]
             if k == "fraction_posed" and v is not None:
                 cells.append(f"{100 * v:.1f} %")
-            elif k == "wall_time_s" and v is not None:
+            elif k in ("wall_time_s", "cpu_time_s") and v is not None:
                 cells.append(f"{v:.1f}")
             elif k == "fps" and v is not None:
                 cells.append(f"{v:.2f}" if v < 10 else f"{v:.1f}")

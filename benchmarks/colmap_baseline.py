@@ -117,6 +117,10 @@ class ColmapResult:
     notes: str = ""
     registration_progress: list = field(default_factory=list)
     """[(seconds into mapping, images registered so far in the current model)], sampled."""
+    cpu_time_s: float | None = None
+    """process CPU time (all threads) of extraction + matching + mapping; None in results of older versions."""
+    load_avg: list | None = None
+    """1/5/15-minute load averages of the machine when the run ended."""
 
     def trajectory(self) -> Trajectory:
         return read_tum(self.trajectory_path)
@@ -198,8 +202,13 @@ def _stage_done(work: Path, stage: str) -> float | None:
     return json.loads(p.read_text())["seconds"] if p.is_file() else None
 
 
-def _mark_stage(work: Path, stage: str, seconds: float) -> None:
-    atomic_write_text(work / f"stage_{stage}.json", json.dumps({"seconds": seconds}))
+def _stage_cpu(work: Path, stage: str) -> float | None:
+    p = work / f"stage_{stage}.json"
+    return json.loads(p.read_text()).get("cpu_seconds") if p.is_file() else None
+
+
+def _mark_stage(work: Path, stage: str, seconds: float, cpu_seconds: float | None = None) -> None:
+    atomic_write_text(work / f"stage_{stage}.json", json.dumps({"seconds": seconds, "cpu_seconds": cpu_seconds}))
 
 
 def _log(msg: str) -> None:
@@ -242,12 +251,12 @@ def run_colmap(source: FrameSource, conf: ColmapConf = CONFS["default"], *, cach
         extraction = pycolmap.FeatureExtractionOptions(num_threads=conf.num_threads, use_gpu=False)
         extraction.sift.max_num_features = conf.max_num_features
         log(f"extract_features: SIFT (max {conf.max_num_features}) on {len(names)} images, CPU")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         pycolmap.extract_features(db_path, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, extraction_options=extraction,
                                   device=pycolmap.Device.cpu)
         done = time.perf_counter() - t0
-        _mark_stage(work, "extract_features", done)
+        _mark_stage(work, "extract_features", done, time.process_time() - c0)
     timings["extract_features"] = done
     log(f"extract_features: {done:.1f} s")
 
@@ -258,7 +267,7 @@ def run_colmap(source: FrameSource, conf: ColmapConf = CONFS["default"], *, cach
                                                     loop_detection=False, num_threads=conf.num_threads)
         matching = pycolmap.FeatureMatchingOptions(num_threads=conf.num_threads, use_gpu=False)
         log(f"match_sequential: overlap {conf.overlap}, quadratic {conf.quadratic_overlap}, no loop detection")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         # resumable: COLMAP skips pairs already in the database, so an interrupted run adds the time it had
         before = json.loads((work / "match_partial.json").read_text())["seconds"] \
             if (work / "match_partial.json").is_file() else 0.0
@@ -266,7 +275,7 @@ def run_colmap(source: FrameSource, conf: ColmapConf = CONFS["default"], *, cach
         pycolmap.match_sequential(db_path, matching_options=matching, pairing_options=pairing,
                                   device=pycolmap.Device.cpu)
         done = before + time.perf_counter() - t0
-        _mark_stage(work, "match_sequential", done)
+        _mark_stage(work, "match_sequential", done, None if before else time.process_time() - c0)
     timings["match_sequential"] = done
     log(f"match_sequential: {done:.1f} s")
 
@@ -283,7 +292,7 @@ def run_colmap(source: FrameSource, conf: ColmapConf = CONFS["default"], *, cach
         max(60, int(conf.max_total_s - timings["extract_features"] - timings["match_sequential"]))
     opts.max_runtime_seconds = map_cap
     progress: list[tuple[float, int]] = []
-    t_map = time.perf_counter()
+    t_map, c_map = time.perf_counter(), time.process_time()
     count = [0]
 
     def on_next_image() -> None:  # called by the mapper after each registration
@@ -305,6 +314,8 @@ def run_colmap(source: FrameSource, conf: ColmapConf = CONFS["default"], *, cach
                                           initial_image_pair_callback=on_initial_pair,
                                           next_image_callback=on_next_image)
     timings["incremental_mapping"] = time.perf_counter() - t_map
+    cpu_parts = [_stage_cpu(work, "extract_features"), _stage_cpu(work, "match_sequential"),
+                 time.process_time() - c_map]
     complete = map_cap < 0 or timings["incremental_mapping"] < map_cap - 1
     log(f"incremental_mapping: {timings['incremental_mapping']:.1f} s, {len(models)} model(s)"
         + ("" if complete else " (stopped at the time cap)"))
@@ -346,6 +357,7 @@ def run_colmap(source: FrameSource, conf: ColmapConf = CONFS["default"], *, cach
         points3D=points3D, mean_reprojection_error_px=mre, conf=asdict(conf), key=cache_key(source, conf),
         pycolmap_version=pycolmap.__version__, date=time.strftime("%Y-%m-%d %H:%M"),
         trajectory_path=str(traj_path), notes="; ".join(notes), registration_progress=progress,
+        cpu_time_s=None if None in cpu_parts else float(sum(cpu_parts)), load_avg=list(os.getloadavg()),
     )
     atomic_write_text(work / "result.json", result.to_json())
     log(f"{source.name}: {result.registered}/{result.frames} registered, ATE "
