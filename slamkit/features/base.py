@@ -10,7 +10,6 @@ import numpy as np
 from ..errors import ConfigError
 
 # popcount of every byte value, for Hamming distances of binary descriptors
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,7 +120,10 @@ def create_extractor(name: str, **options) -> Extractor:
 def descriptor_distance(d1: np.ndarray, d2: np.ndarray, binary: bool) -> np.ndarray:
     """Row-wise distance of paired descriptors (N, D), (N, D) -> (N,) float32 (Hamming bits or L2)."""
     if binary:
-        return _POPCOUNT[np.bitwise_xor(d1, d2)].sum(axis=1, dtype=np.int32).astype(np.float32)
+        x = np.bitwise_xor(d1, d2)
+        if x.shape[1] % 8 == 0 and x.flags.c_contiguous:  # 64 bits at a time
+            x = x.view(np.uint64)
+        return np.bitwise_count(x).sum(axis=1, dtype=np.int32).astype(np.float32)
     diff = d1.astype(np.float32) - d2.astype(np.float32)
     return np.sqrt(np.einsum("ij,ij->i", diff, diff))
 
@@ -188,29 +190,28 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     M, N = len(proj), len(keypoints)
     if M == 0 or N == 0:
         return np.empty((0, 2), np.int64)
+    # keypoints bucketed in square cells of side `radius`: a point's candidates lie in its 3x3 cells
     cell = max(float(radius), 1.0)
-    kc = np.floor(keypoints / cell).astype(np.int64)
-    width = int(kc[:, 0].max()) + 3
-    key = (kc[:, 1] + 1) * width + (kc[:, 0] + 1)
+    origin = np.floor(keypoints.min(axis=0) / cell) - 2  # two empty cells around the keypoints: any
+    kc = (np.floor(keypoints / cell) - origin).astype(np.int64)  # projection with candidates is inside
+    width, height = int(kc[:, 0].max()) + 3, int(kc[:, 1].max()) + 3
+    key = kc[:, 1] * width + kc[:, 0]
     order = np.argsort(key, kind="stable")
-    skey = key[order]
-    pc = np.floor(proj / cell).astype(np.int64)
-    # candidate cells: the 3x3 neighbourhood of each projection
-    offs = np.array([(dx, dy) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
-    cx = pc[:, None, 0] + offs[None, :, 0]
-    cy = pc[:, None, 1] + offs[None, :, 1]
-    valid = (cx >= -1) & (cx <= width - 2) & (cy >= -1)
-    ckey = np.where(valid, (cy + 1) * width + (cx + 1), -1)
-    lo = np.searchsorted(skey, ckey, side="left")
-    hi = np.searchsorted(skey, ckey, side="right")
-    counts = np.where(valid, hi - lo, 0).ravel()
+    count = np.bincount(key, minlength=width * height)
+    start = np.cumsum(count) - count
+    pc = (np.floor(proj / cell) - origin).astype(np.int64)
+    inside = (pc[:, 0] >= 1) & (pc[:, 0] <= width - 2) & (pc[:, 1] >= 1) & (pc[:, 1] <= height - 2)
+    pts = np.flatnonzero(inside)
+    centre = pc[pts, 1] * width + pc[pts, 0]
+    ckey = (centre[:, None] + np.array([dy * width + dx for dy in (-1, 0, 1) for dx in (-1, 0, 1)])).ravel()
+    counts = count[ckey]
     total = int(counts.sum())
     if total == 0:
         return np.empty((0, 2), np.int64)
-    pt = np.repeat(np.repeat(np.arange(M), 9), counts)
-    start = np.repeat(lo.ravel(), counts)
+    pt = np.repeat(np.repeat(pts, 9), counts)
+    first = np.repeat(start[ckey], counts)
     within = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-    kp = order[start + within]
+    kp = order[first + within]
     d2 = ((keypoints[kp] - proj[pt]) ** 2).sum(axis=1)
     ok = d2 <= radius * radius
     if kp_taken is not None:
