@@ -76,6 +76,8 @@ class Grid:
 def _config_value(cfg, name: str) -> Any:
     from .config import ALIASES
 
+    if name == "features":  # a feature pipeline name (xfeat-lighterglue) also sets the matcher: keep the name
+        return cfg.feature_pipeline
     obj = cfg
     for part in ALIASES.get(name, name).split("."):
         obj = getattr(obj, part)

@@ -14,7 +14,11 @@ from .errors import SlamkitError
 def _add_config_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("configuration (see slamkit.SlamConfig)")
     g.add_argument("--preset", default="default", help="named preset (slamkit presets lists them)")
-    g.add_argument("--features", help="feature extractor: orb (default), sift, ...")
+    g.add_argument("--features", help="features: orb (default), sift, xfeat (XFeat + mutual NN), xfeat-lighterglue, "
+                                      "aliked-lightglue, superpoint-superglue (learned ones: pip install 'slamkit[learned]')")
+    g.add_argument("--matcher", help="pair matcher: nn (default), lighterglue (xfeat), lightglue (aliked), superglue")
+    g.add_argument("--weights-dir", help="folder of weight files for learned features (default $SLAMKIT_WEIGHTS; "
+                                         "superpoint-superglue needs superpoint_v1.pth and superglue_indoor.pth)")
     g.add_argument("--num-features", type=int)
     g.add_argument("--flow-threshold", type=float, help="keyframe flow threshold (default 0.05)")
     g.add_argument("--min-tracked-matches", type=int, help="keyframe needs this many tracked matches (50)")
@@ -31,7 +35,8 @@ def config_from_args(args: argparse.Namespace):
     from .config import SlamConfig
 
     cfg = SlamConfig.preset(args.preset)
-    over = {k: getattr(args, k) for k in ("features", "num_features", "flow_threshold", "min_tracked_matches",
+    over = {k: getattr(args, k) for k in ("features", "matcher", "weights_dir", "num_features", "flow_threshold",
+                                          "min_tracked_matches",
                                           "init_frames", "init_strategy", "frame_skip", "max_frames", "seed")
             if getattr(args, k) is not None}
     for item in args.set:

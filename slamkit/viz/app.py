@@ -28,9 +28,8 @@ from pathlib import Path
 import ipywidgets as W
 import numpy as np
 
-from ..config import SlamConfig
+from ..config import SlamConfig, feature_pipeline_status
 from ..errors import SlamkitError
-from ..features import available_extractors
 from ..pipeline import Slam, StepResult
 from ..sources import open_source
 from . import frame_view as fv
@@ -46,8 +45,34 @@ _LABELS = {
     "init_frames": "initialization frames",
     "flow_threshold": "flow threshold",
     "min_tracked_matches": "min tracked matches",
-    "features": "extractor",
+    "features": "features",
 }
+
+
+def feature_options(config: SlamConfig) -> tuple[list[str], dict[str, str]]:
+    """The features dropdown: the feature pipelines that can run here (``orb``, ``sift``, and ``xfeat``,
+    ``xfeat-lighterglue``, ``aliked-lightglue``, ``superpoint-superglue`` when the learned extra and their
+    weight files are there), plus the config's own; and the others with why not."""
+    status = feature_pipeline_status(config.weights_dir)
+    options = [name for name, why in status.items() if why is None]
+    if config.feature_pipeline not in options:
+        options.append(config.feature_pipeline)
+    return options, {name: why for name, why in status.items() if why is not None}
+
+
+def _unavailable_html(unavailable: dict[str, str]) -> str:
+    import html
+
+    if not unavailable:
+        return ""
+    from ..features.learned import INSTALL_HINT, torch_available
+
+    if not torch_available():
+        head = f"learned features ({', '.join(unavailable)}): {INSTALL_HINT}"
+        return f'<span class="slamkit-features-note" style="color:#666">{html.escape(head)}</span>'
+    items = "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in unavailable.items())
+    return (f'<details class="slamkit-features-note" style="color:#666"><summary>not available here: '
+            f'{html.escape(", ".join(unavailable))}</summary><ul>{items}</ul></details>')
 
 
 def _config_values(config: SlamConfig, source_len: int) -> dict:
@@ -59,7 +84,7 @@ def _config_values(config: SlamConfig, source_len: int) -> dict:
         "init_frames": config.initializer.init_frames,
         "flow_threshold": config.keyframes.flow_threshold,
         "min_tracked_matches": config.keyframes.min_tracked_matches,
-        "features": config.features,
+        "features": config.feature_pipeline,
     }
 
 
@@ -121,8 +146,10 @@ class SlamApp:
         self.w_matches = W.IntSlider(value=vals["min_tracked_matches"], min=5, max=500,
                                      description="min tracked matches", style=style, layout=wide,
                                      continuous_update=False)
-        self.w_features = W.Dropdown(options=available_extractors(), value=vals["features"], description="extractor",
-                                     style=style, layout=wide)
+        options, unavailable = feature_options(cfg)
+        self.w_features = W.Dropdown(options=options, value=vals["features"], description="features", style=style,
+                                     layout=wide)
+        self.w_features_note = W.HTML(_unavailable_html(unavailable), layout=W.Layout(max_width="640px"))
         self.w_out = W.Text(value=str(out_dir), description="output folder", style=style, layout=wide)
         bl = W.Layout(width="96px")
         self.b_step = W.Button(description="Step", tooltip="process one frame", icon="step-forward", layout=bl)
@@ -185,7 +212,7 @@ class SlamApp:
 
         controls = W.VBox([
             W.HBox([self.w_source, self.w_default]), self.w_skip, self.w_max, self.w_init, self.w_flow,
-            self.w_matches, self.w_features, self.w_out,
+            self.w_matches, self.w_features, self.w_features_note, self.w_out,
             W.HBox([self.b_step, self.b_run, self.b_reset, self.b_save, self.b_load, self.b_html]),
             self.w_pending, self.w_status,
         ])

@@ -6,9 +6,10 @@ Every extractor's descriptors are L2-normalised float32, so they also work with 
 the projection-guided L2 matching of frame tracking.
 
 Importing this package does not import torch: the names are registered with small factories that import
-torch and the model module only when an extractor or matcher is created, and raise
-:class:`~slamkit.errors.ConfigError` saying what to install (torch missing) or where to put a weight
-file (see :mod:`slamkit.features.learned.weights`).
+torch and the model module only when an extractor or matcher is created. Creation first checks, still
+without importing torch, that torch is installed and that the weight files are there
+(:func:`unavailable_reason`), and raises :class:`~slamkit.errors.ConfigError` saying what to install or
+where to put which file (see :mod:`slamkit.features.learned.weights`).
 
 One file per model: ``xfeat.py``, ``aliked.py``, ``lightglue.py`` (LightGlue and LighterGlue),
 ``superpoint.py``, ``superglue.py``; each has a ``torch.nn.Module`` loading the official state dict and a
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
 from typing import Any, Callable
 
 from ...errors import ConfigError
@@ -39,6 +41,50 @@ EXTRACTORS = {"xfeat": ("xfeat", "XFeatExtractor"), "aliked": ("aliked", "Aliked
               "superpoint": ("superpoint", "SuperPointExtractor")}
 MATCHERS = {"lighterglue": ("lightglue", "LighterGlueMatcher"), "lightglue": ("lightglue", "LightGlueMatcher"),
             "superglue": ("superglue", "SuperGlueMatcher")}
+MATCHER_FEATURES = {"lighterglue": "xfeat", "lightglue": "aliked", "superglue": "superpoint"}
+"""The extractor whose descriptors each learned matcher was trained on (the only one it accepts)."""
+
+
+def weight_files(name: str, **options: Any) -> list[str]:
+    """Names of the weight files the learned extractor or matcher ``name`` loads with ``options``
+    (the defaults of each model's ``default_conf``); [] for a name that is not a learned one."""
+    if name == "xfeat":
+        return [options.get("weights", "xfeat.pt")]
+    if name == "aliked":
+        return [f"{options.get('model_name', 'aliked-n16')}.pth"]
+    if name == "superpoint":
+        return [options.get("weights", "superpoint_v1.pth")]
+    if name == "lighterglue":
+        return [options.get("weights", "xfeat-lighterglue.pt")]
+    if name == "lightglue":
+        return [options.get("weights", "aliked_lightglue.pth")]
+    if name == "superglue":
+        w = options.get("weights", "indoor")
+        return [f"superglue_{w}.pth"] if w in ("indoor", "outdoor") else []  # the matcher says what is wrong
+    return []
+
+
+def unavailable_reason(features: str, matcher: str = "nn", weights_dir: str | os.PathLike | None = None) -> str | None:
+    """Why the extractor ``features`` with the pair matcher ``matcher`` cannot be created here, or None when
+    it can: torch not installed (what to ``pip install``), or a weight file not found (which file, where to
+    put it, its licence). Imports no torch; does not load any weights.
+
+    >>> unavailable_reason("orb") is None
+    True
+    """
+    learned = [n for n in (features, matcher) if n in EXTRACTORS or n in MATCHERS]
+    if not learned:
+        return None
+    if not torch_available():
+        return f"{' + '.join(learned)} need{'s' if len(learned) == 1 else ''} PyTorch, which is not installed: {INSTALL_HINT}"
+    missing = []
+    for name in learned:
+        for file in weight_files(name):
+            try:
+                find_weights(file, weights_dir or None, who=name)
+            except ConfigError as e:  # every missing file, each with where to put it
+                missing.append(str(e))
+    return " ".join(missing) or None
 
 
 def torch_available() -> bool:
@@ -56,6 +102,10 @@ def require_torch(what: str) -> None:
 
 def _lazy(kind: str, name: str, module: str, cls: str) -> Callable[..., Any]:
     def create(**options: Any) -> Any:
+        if not torch_available():  # first: what to install
+            require_torch(f"{kind} {name!r}")
+        for file in weight_files(name, **options):  # a missing file is reported before torch is imported
+            find_weights(file, options.get("weights_dir"), who=name)
         require_torch(f"{kind} {name!r}")
         mod = importlib.import_module(f"{__name__}.{module}")
         return getattr(mod, cls)(**options)
@@ -73,5 +123,5 @@ def register() -> None:
         register_matcher(name)(_lazy("matcher", name, module, cls))
 
 
-__all__ = ["PIPELINES", "EXTRACTORS", "MATCHERS", "INSTALL_HINT", "ENV_VAR", "WEIGHT_FILES", "WeightFile",
-           "find_weights", "register", "require_torch", "torch_available"]
+__all__ = ["PIPELINES", "EXTRACTORS", "MATCHERS", "MATCHER_FEATURES", "INSTALL_HINT", "ENV_VAR", "WEIGHT_FILES", "WeightFile",
+           "find_weights", "register", "require_torch", "torch_available", "unavailable_reason", "weight_files"]
