@@ -78,6 +78,14 @@ class SlamMap:
         self._pending: dict[int, Keyframe] = {}
         self._observed: set[int] = set()
         self._next_image_id = 1
+        self._point3D_ids: dict[int, np.ndarray] = {}
+        self._covisible: dict[int, list[tuple[int, int]]] = {}
+
+    def changed(self) -> None:
+        """Forget the cached per-keyframe point ids and covisibility: call after anything that adds,
+        merges or removes observations (registration, triangulation, track maintenance, filtering)."""
+        self._point3D_ids.clear()
+        self._covisible.clear()
 
     # ----------------------------------------------------------------- keyframes
     @property
@@ -126,11 +134,13 @@ class SlamMap:
         self.reconstruction.frame(image_id).rig_from_world = copy.copy(cam_from_world)
         self.observations.register_frame(image_id)
         self.keyframes[image_id] = self._pending.pop(image_id)
+        self.changed()
 
     def deregister(self, image_id: int) -> None:
         """Remove a keyframe's observations and registration (seed §3.5: too few map points)."""
         self.observations.deregister_frame(image_id)
         self.keyframes.pop(image_id, None)
+        self.changed()
 
     def add_observations(self, image_id: int, point2D_idxs: np.ndarray, point3D_ids: np.ndarray) -> int:
         """Add tracked 2D-3D observations to existing tracks; returns how many were added."""
@@ -143,11 +153,13 @@ class SlamMap:
                 continue
             self.observations.add_observation(p, pycolmap.TrackElement(image_id, j))
             added += 1
+        self.changed()
         return added
 
     def triangulate(self, image_id: int) -> int:
         """Continue and create tracks through the new keyframe (COLMAP ``triangulate_image``)."""
         n = self.triangulator.triangulate_image(self.triangulation, image_id)
+        self.changed()
         self.color_new_points(image_id)
         return n
 
@@ -167,12 +179,17 @@ class SlamMap:
         return copy.copy(self.reconstruction.frame(image_id).rig_from_world)
 
     def point3D_ids(self, image_id: int) -> np.ndarray:
-        """(N,) int64 3D point id of each keypoint of the keyframe, -1 where none."""
-        image = self.reconstruction.image(image_id)
-        out = np.full(image.num_points2D(), -1, np.int64)
-        idx = image.get_observation_point2D_idxs()
-        if idx:
-            out[idx] = [image.point2D(j).point3D_id for j in idx]
+        """(N,) int64 3D point id of each keypoint of the keyframe, -1 where none (read-only, cached
+        until :meth:`changed`)."""
+        out = self._point3D_ids.get(image_id)
+        if out is None:
+            image = self.reconstruction.image(image_id)
+            out = np.full(image.num_points2D(), -1, np.int64)
+            points2D = image.get_observation_points2D()
+            if points2D:
+                out[image.get_observation_point2D_idxs()] = [p.point3D_id for p in points2D]
+            out.flags.writeable = False
+            self._point3D_ids[image_id] = out
         return out
 
     def points_xyz(self, point3D_ids) -> np.ndarray:
@@ -181,17 +198,19 @@ class SlamMap:
         return np.array([pts[int(p)].xyz for p in point3D_ids], dtype=np.float64).reshape(-1, 3)
 
     def covisible(self, image_id: int, limit: int | None = None) -> list[tuple[int, int]]:
-        """Keyframes sharing 3D points with ``image_id``: [(image id, shared points)], most shared first."""
-        counts: dict[int, int] = {}
-        pts = self.reconstruction.points3D
-        for p in self.point3D_ids(image_id):
-            if p < 0:
-                continue
-            for el in pts[int(p)].track.elements:
-                if el.image_id != image_id:
-                    counts[el.image_id] = counts.get(el.image_id, 0) + 1
-        ranked = sorted(((i, c) for i, c in counts.items() if i in self.keyframes), key=lambda x: (-x[1], x[0]))
-        return ranked[:limit] if limit is not None else ranked
+        """Keyframes sharing 3D points with ``image_id``: [(image id, shared points)], most shared first
+        (cached until :meth:`changed`)."""
+        ranked = self._covisible.get(image_id)
+        if ranked is None:
+            point3D = self.reconstruction.point3D
+            ids = [el.image_id for p in self.point3D_ids(image_id)[self.point3D_ids(image_id) >= 0].tolist()
+                   for el in point3D(p).track.elements]
+            counts = np.bincount(np.asarray(ids, np.int64)) if ids else np.zeros(1, np.int64)
+            counts[image_id:image_id + 1] = 0
+            ranked = [(int(i), int(counts[i])) for i in np.lexsort((np.arange(len(counts)), -counts))
+                      if counts[i] > 0 and int(i) in self.keyframes]
+            self._covisible[image_id] = ranked
+        return ranked[:limit] if limit is not None else list(ranked)
 
     @property
     def num_keyframes(self) -> int:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import pycolmap
 
 from ..errors import ConfigError
@@ -43,6 +44,9 @@ class BundleAdjustmentConfig:
     """Normalize the map (COLMAP ``Reconstruction.normalize``) after global BA."""
     refine_intrinsics: bool = False
     """Intrinsics are fixed (calibrated cameras) unless this is set."""
+    function_tolerance: float = 1e-6
+    """Ceres stops when an iteration lowers the cost by less than this fraction (Ceres' default; COLMAP's
+    0 always runs ``*_iterations``, which local BA then never converges within)."""
     num_threads: int = -1
     """Ceres threads (-1: all cores). Runs stay bit-identical: Ceres evaluates residual blocks
     independently (checked by tests/test_pipeline.py::test_same_seed_gives_identical_trajectory)."""
@@ -54,6 +58,8 @@ class BundleAdjustmentConfig:
             raise ConfigError(f"ba.global_growth must be > 0 (got {self.global_growth})")
         if self.max_reproj_error_px <= 0:
             raise ConfigError(f"ba.max_reproj_error_px must be > 0 (got {self.max_reproj_error_px})")
+        if not 0 <= self.function_tolerance < 1:
+            raise ConfigError(f"ba.function_tolerance must be in [0, 1) (got {self.function_tolerance})")
         if self.loss not in _LOSSES:
             raise ConfigError(f"ba.loss must be one of {sorted(_LOSSES)} (got {self.loss!r})")
 
@@ -73,6 +79,23 @@ class BundleAdjustmentResult:
     """The similarity applied by normalization (new_from_old world), or None."""
 
 
+def bundle_adjustment_options(iterations: int, loss: str = "soft_l1", refine_intrinsics: bool = False,
+                              function_tolerance: float = 1e-6, num_threads: int = -1
+                              ) -> pycolmap.BundleAdjustmentOptions:
+    """pycolmap BA options: robust loss (scale 1 px), intrinsics fixed unless asked, quiet."""
+    o = pycolmap.BundleAdjustmentOptions()
+    o.print_summary = False
+    o.refine_focal_length = refine_intrinsics
+    o.refine_principal_point = False
+    o.refine_extra_params = False
+    o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, _LOSSES[loss])
+    o.ceres.loss_function_scale = 1.0
+    o.ceres.solver_options.max_num_iterations = iterations
+    o.ceres.solver_options.function_tolerance = function_tolerance
+    o.ceres.solver_options.num_threads = num_threads
+    return o
+
+
 class BundleAdjuster:
     """Local / global bundle adjustment of a :class:`SlamMap`, then track maintenance and filtering."""
 
@@ -82,16 +105,8 @@ class BundleAdjuster:
         self._keyframes_at_last_global = 0
 
     def _options(self, iterations: int) -> pycolmap.BundleAdjustmentOptions:
-        o = pycolmap.BundleAdjustmentOptions()
-        o.print_summary = False
-        o.refine_focal_length = self.config.refine_intrinsics
-        o.refine_principal_point = False
-        o.refine_extra_params = False
-        o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, _LOSSES[self.config.loss])
-        o.ceres.loss_function_scale = 1.0
-        o.ceres.solver_options.max_num_iterations = iterations
-        o.ceres.solver_options.num_threads = self.config.num_threads
-        return o
+        c = self.config
+        return bundle_adjustment_options(iterations, c.loss, c.refine_intrinsics, c.function_tolerance, c.num_threads)
 
     def global_due(self, slam_map: SlamMap) -> bool:
         n = slam_map.num_keyframes
@@ -109,10 +124,10 @@ class BundleAdjuster:
         t0 = time.perf_counter()
         window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
         cfg = pycolmap.BundleAdjustmentConfig()
-        points: set[int] = set()
         for i in window:
             cfg.add_image(i)
-            points.update(int(p) for p in slam_map.point3D_ids(i) if p >= 0)
+        points = np.unique(np.concatenate([slam_map.point3D_ids(i) for i in window]))
+        points = points[points >= 0].tolist()
         for p in points:
             cfg.add_variable_point(p)
         if not self.config.refine_intrinsics:
@@ -158,4 +173,5 @@ class BundleAdjuster:
         else:
             filtered = obs.filter_points3D_in_images(self.config.max_reproj_error_px,
                                                      self.config.min_tri_angle_deg, image_ids)
+        slam_map.changed()
         return merged, completed, filtered

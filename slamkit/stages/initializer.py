@@ -22,6 +22,7 @@ from ..camera import Intrinsics
 from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, pycolmap_camera
+from .ba import bundle_adjustment_options
 from .flow import flow_score
 
 STRATEGIES = ("best_pair", "first_inliers")
@@ -235,6 +236,7 @@ class Initializer:
         slam_map.color_new_points(ia)
         self._global_ba(slam_map)
         slam_map.observations.filter_all_points3D(c.max_reproj_error_px, c.min_track_angle_deg)
+        slam_map.changed()
         n_points = slam_map.num_points
         if n_points < c.min_points:
             return InitResult("failed", f"{n_points} map points after BA < {c.min_points}")
@@ -245,12 +247,7 @@ class Initializer:
 
     @staticmethod
     def _global_ba(slam_map: SlamMap) -> None:
-        opts = pycolmap.BundleAdjustmentOptions()
-        opts.print_summary = False
-        opts.refine_focal_length = False
-        opts.refine_principal_point = False
-        opts.refine_extra_params = False
-        opts.ceres.solver_options.num_threads = 1
+        opts = bundle_adjustment_options(100, loss="trivial", num_threads=1)
         cfg = pycolmap.BundleAdjustmentConfig()
         for i in slam_map.keyframes:
             cfg.add_image(i)
