@@ -17,8 +17,10 @@ def _grid_cap(kps, n_cells: tuple[int, int], shape: tuple[int, int], total: int)
     h, w = shape
     gx, gy = n_cells
     per_cell = int(np.ceil(total / (gx * gy)))
-    xy = np.array([k.pt for k in kps], dtype=np.float32)
-    resp = np.array([k.response for k in kps], dtype=np.float32)
+    import cv2
+
+    xy = cv2.KeyPoint_convert(kps).reshape(-1, 2)
+    resp = np.fromiter((k.response for k in kps), np.float32, len(kps))
     cell = np.minimum((xy[:, 1] * gy / h).astype(np.int64), gy - 1) * gx + np.minimum(
         (xy[:, 0] * gx / w).astype(np.int64), gx - 1)
     order = np.lexsort((-resp, cell))
@@ -93,7 +95,9 @@ def _to_features(kps, desc, binary: bool, shape: tuple[int, ...]) -> Features:
         d = 32 if binary else 128
         return Features(np.empty((0, 2)), np.empty((0, d), np.uint8 if binary else np.float32),
                         np.empty(0, np.float32), binary, np.empty(0, np.float32), size)
-    xy = np.array([k.pt for k in kps], dtype=np.float64)
-    scores = np.array([k.response for k in kps], dtype=np.float32)
-    sizes = np.array([k.size for k in kps], dtype=np.float32)
+    import cv2
+
+    xy = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float64)
+    scores = np.fromiter((k.response for k in kps), np.float32, len(kps))
+    sizes = np.fromiter((k.size for k in kps), np.float32, len(kps))
     return Features(xy, np.ascontiguousarray(desc), scores, binary, sizes, size)
