@@ -234,3 +234,13 @@ class SlamMap:
         xyz = np.array([pts[int(i)].xyz for i in ids]).reshape(-1, 3)
         rgb = np.array([pts[int(i)].color for i in ids], dtype=np.uint8).reshape(-1, 3)
         return ids, xyz, rgb
+
+    # ----------------------------------------------------------------- sessions
+    def rewire(self) -> None:
+        """Recreate the ObservationManager and IncrementalTriangulator around the current reconstruction and
+        graph, after both were filled from outside (``slamkit.session`` rebuilding a saved map): the
+        ObservationManager initializes its statistics from them; the triangulator starts with empty caches."""
+        self.observations = pycolmap.ObservationManager(self.reconstruction, self.graph)
+        self.triangulator = pycolmap.IncrementalTriangulator(self.graph, self.reconstruction, self.observations)
+        self._observed = set(int(i) for i in self.reconstruction.images)
+        self.changed()

@@ -125,6 +125,8 @@ class Slam:
         elif isinstance(config, str):
             config = SlamConfig.preset(config)
         self.config = config.validate()
+        self.source_spec = str(source) if isinstance(source, (str, Path)) else None
+        """How the source was opened (a path or spec), recorded in sessions so ``Slam.resume`` can reopen it."""
         if isinstance(source, (str, Path)):
             from .sources import open_source
 
@@ -569,8 +571,26 @@ class Slam:
             "config": self.config.to_dict(),
         }
 
+    def save_session(self, out_dir: str | Path) -> Path:
+        """Write only the session (everything :meth:`resume` needs) to ``out_dir``, atomically.
+        :meth:`save` writes one too, in ``out_dir/session/``."""
+        from .session import save_session
+
+        return save_session(self, out_dir)
+
+    @classmethod
+    def resume(cls, path: str | Path, source: FrameSource | str | None = None, config=None,
+               callbacks: list[Callback] | None = None) -> "Slam":
+        """The Slam saved in ``path`` (a run folder from :meth:`save`, or a session folder), ready to continue
+        at the next frame. ``source`` defaults to the recorded one; ``config`` None = the saved config, a dict
+        overrides some of its values (see :func:`slamkit.session.load_session`)."""
+        from .session import load_session
+
+        return load_session(path, source, config, callbacks, cls=cls)
+
     def save(self, out_dir: str | Path) -> Path:
-        """Write trajectories, COLMAP model, PLY and summary to ``out_dir`` (see :func:`slamkit.io.save_run`)."""
+        """Write trajectories, COLMAP model, PLY, summary and a session to resume from (:meth:`resume`) to
+        ``out_dir``, atomically (see :func:`slamkit.io.save_run`)."""
         from .io.run import save_run
 
         return save_run(self, out_dir)

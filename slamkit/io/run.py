@@ -8,6 +8,11 @@ several):
 - ``sparse/`` COLMAP binary model (``pycolmap.Reconstruction(DIR / "sparse")``); ``points.ply``
 - ``summary.json`` timings, counts, Table-2 columns and the config; ``frames.csv`` one row per frame
 - ``groundtruth_tum.txt`` the source's ground truth of the used frames, when it has one
+- ``session/`` everything ``Slam.resume(DIR)`` needs to continue the run (:mod:`slamkit.session`: COLMAP
+  models of every segment, JSON state and ``.npz`` arrays, no pickle)
+
+Frames a stage failed on have status ``error`` in ``frames.csv`` (message in its ``error`` column and in
+``summary.json["errors"]``).
 """
 
 from __future__ import annotations
@@ -27,19 +32,28 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..pipeline import Slam
 
 
-def save_run(slam: "Slam", out_dir: str | Path) -> Path:
-    """Write ``slam``'s state to ``out_dir`` (replaced atomically: a crash never leaves half a folder)."""
+def save_run(slam: "Slam", out_dir: str | Path, session: bool = True) -> Path:
+    """Write ``slam``'s state to ``out_dir`` (replaced atomically: a crash never leaves half a folder), with a
+    resumable session in ``out_dir/session/`` unless ``session=False``."""
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         _write_segment(slam, None, tmp)
         if len(slam.segments) > 1:
             for seg in slam.segments:
                 _write_segment(slam, seg.id, tmp / "segments" / f"segment_{seg.id:02d}")
-        (tmp / "summary.json").write_text(json.dumps(_jsonable(slam.summary()), indent=2))
+        summary = slam.summary()
+        errors = getattr(slam, "errors", {})
+        if errors:
+            summary["errors"] = {str(k): v for k, v in sorted(errors.items())}
+        (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2))
         (tmp / "frames.csv").write_text(_frames_csv(slam))
         gt = _ground_truth(slam)
         if gt is not None and len(gt):
             write_tum(tmp / "groundtruth_tum.txt", gt)
+        if session:
+            from ..session import SESSION_DIR, write_session
+
+            write_session(slam, tmp / SESSION_DIR)
     return out_dir
 
 
@@ -60,9 +74,11 @@ def _write_segment(slam: "Slam", segment: int | None, folder: Path) -> None:
 def _frames_csv(slam: "Slam") -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
-    w.writerow(["index", "frame_id", "timestamp", "status", "segment", "keyframe_image_id"])
+    errors = getattr(slam, "errors", {})
+    w.writerow(["index", "frame_id", "timestamp", "status", "segment", "keyframe_image_id", "error"])
     for r in slam.records:
-        w.writerow([r.index, r.frame_id, f"{r.timestamp:.6f}", r.status, r.segment, r.keyframe_image_id])
+        w.writerow([r.index, r.frame_id, f"{r.timestamp:.6f}", r.status, r.segment, r.keyframe_image_id,
+                    errors.get(r.index, "")])
     return buf.getvalue()
 
 

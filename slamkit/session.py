@@ -1,0 +1,565 @@
+"""Sessions: everything a :class:`~slamkit.pipeline.Slam` needs to continue a run, in open formats.
+
+A session is a folder of COLMAP binary models, JSON and ``.npz`` arrays (read with ``allow_pickle=False``;
+no pickle anywhere). ``slam.save(DIR)`` writes one to ``DIR/session/`` beside the run outputs;
+:func:`save_session` writes one on its own. :func:`load_session` (``Slam.resume``) rebuilds the Slam, which
+continues at the next frame exactly as the uninterrupted run would::
+
+    session.json            format version, source identity and spec, config, pipeline counters, frame
+                            records (without poses), step errors, segments, keyframe bookkeeping, the
+                            initializer's window, the local map and the bundle-adjustment counter
+    state.npz               per-frame relative poses (N, 4, 4), the local map (point ids, positions,
+                            descriptors), the last tracked point ids, the initializer's buffered features and
+                            window matches
+    segment_XX/model/       the segment's pycolmap Reconstruction (COLMAP binary, ``pycolmap.Reconstruction(d)``)
+    segment_XX/arrays.npz   keyframe features (keypoints, descriptors, scores, sizes), colours, thumbnails,
+                            relocalization signatures, the features of frames ``finish()`` tracks again, and the
+                            correspondence graph as image pairs in insertion order with their matches
+
+Besides the model, three things a COLMAP model does not hold are restored so that the continuation is
+bit-identical (checked by ``tests/test_session.py``): the order in which frames were registered
+(``Reconstruction.normalize`` averages camera centres in that order), the largest 3D point id ever given
+(new points get the ids they would have had), and the ``CorrespondenceGraph``, replayed pair by pair in the
+order that reproduces every keypoint's correspondence list (the triangulator reads them in that order; the
+order is recovered from the lists themselves). ``ObservationManager`` rebuilds its statistics from the model
+and the graph; ``IncrementalTriangulator`` clears its caches on every call and keeps only the set of tracks
+modified since the last bundle adjustment (non-empty between initialization and the first keyframe), which
+is saved and restored.
+
+Interruption: :func:`deferred_interrupt` holds Ctrl-C back until the current SLAM step is complete, so the
+state is always that of whole frames and can be saved.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import hashlib
+import heapq
+import json
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Iterator
+
+import numpy as np
+import pycolmap
+
+from .camera import Intrinsics
+from .config import SlamConfig
+from .errors import ConfigError, SlamkitError
+from .features import Features, FrameFeatures
+from .map import CAMERA_ID, Keyframe, SlamMap
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .pipeline import Slam
+
+FORMAT = "slamkit-session"
+VERSION = 1
+SESSION_FILE = "session.json"
+SESSION_DIR = "session"
+"""Name of the session folder inside a saved run folder."""
+
+STRUCTURAL_FIELDS = ("features", "matcher", "frame_skip")
+"""Config fields the saved state depends on: a resumed run cannot change them."""
+
+_SLAM_SCALARS = ("_cursor", "last_keyframe", "_points_at_last_keyframe", "_consecutive_lost", "wall_time",
+                 "cpu_time", "finished")
+_SLAM_HANDLED = set(_SLAM_SCALARS) | {
+    "config", "source", "source_spec", "callbacks", "camera", "extractor", "tracker", "selector", "mapper",
+    "bundle_adjuster", "initializer", "indices", "records", "segments", "segment", "local_map", "_last_ids",
+    "timings", "last_frame", "last_features", "last_result", "errors"}
+"""Slam attributes saved (or rebuilt from the config) explicitly. Any other attribute holding a plain
+number, string or bool is saved too (``extra``), so a new counter in the pipeline survives a resume."""
+
+
+class SessionError(SlamkitError):
+    """A session folder is missing, unreadable, or does not belong to the given source."""
+
+
+# ----------------------------------------------------------------------------------------------- saving
+def save_session(slam: "Slam", out_dir: str | Path) -> Path:
+    """Write ``slam``'s session to ``out_dir`` (replaced atomically); returns the folder."""
+    from .io.atomic import atomic_dir
+
+    out_dir = Path(out_dir)
+    with atomic_dir(out_dir) as tmp:
+        write_session(slam, tmp)
+    return out_dir
+
+
+def write_session(slam: "Slam", folder: str | Path) -> None:
+    """Write the session files into ``folder`` (created if needed; not atomic by itself — :func:`save_session`
+    and :func:`slamkit.io.save_run` call it inside a temporary folder). ``session.json`` is written last."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, np.ndarray] = {}
+    meta: dict[str, Any] = {
+        "format": FORMAT, "version": VERSION, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "source": {**source_identity(slam.source), "spec": getattr(slam, "source_spec", None)},
+        "config": slam.config.to_dict(),
+        "state": {k: getattr(slam, k) for k in _SLAM_SCALARS},
+        "extra": {k: v for k, v in vars(slam).items()
+                  if k not in _SLAM_HANDLED and (v is None or isinstance(v, (bool, int, float, str)))},
+        "timings": dict(slam.timings),
+        "errors": {str(k): v for k, v in getattr(slam, "errors", {}).items()},
+        "records": _records_to(slam.records, arrays),
+        "current_segment": slam.segment.id if slam.segment is not None else None,
+        "segments": [],
+        "bundle_adjuster": {"keyframes_at_last_global": int(slam.bundle_adjuster._keyframes_at_last_global)},
+    }
+    if slam._last_ids is not None:
+        arrays["last_ids"] = np.asarray(slam._last_ids)
+    meta["local_map"] = _local_map_to(slam.local_map, arrays) if slam.local_map is not None else None
+    init = slam.initializer
+    meta["initializer"] = {
+        "frames": _frame_features_to(init.frames, "init_frames", arrays),
+        "history": _frame_features_to(init.history, "init_history", arrays),
+        "matches": [list(k) for k in init._matches],
+    }
+    _put_list(arrays, "init_matches", list(init._matches.values()))
+    for seg in slam.segments:
+        meta["segments"].append(_write_segment(seg, folder / f"segment_{seg.id:02d}"))
+    np.savez(folder / "state.npz", **arrays)
+    (folder / SESSION_FILE).write_text(json.dumps(meta, indent=1, default=_json_default))
+
+
+def _write_segment(seg, folder: Path) -> dict:
+    slam_map: SlamMap = seg.slam_map
+    rec = slam_map.reconstruction
+    (folder / "model").mkdir(parents=True, exist_ok=True)
+    rec.write_binary(str(folder / "model"))
+    arrays: dict[str, np.ndarray] = {}
+    kfs = list(slam_map.keyframes.values())
+    pairs, matches = graph_pairs(slam_map)
+    arrays["graph_pairs"] = np.asarray(pairs, np.int64).reshape(-1, 2)
+    _put_list(arrays, "graph_matches", matches)
+    sig_ids = list(seg.signatures)
+    _put_list(arrays, "signatures", [seg.signatures[i] for i in sig_ids])
+    meta = {
+        "id": seg.id,
+        "frames": [int(i) for i in seg.frames],
+        "relocalizations": int(seg.relocalizations),
+        "extra": {f.name: getattr(seg, f.name) for f in dataclasses.fields(seg)
+                  if f.name not in ("id", "slam_map", "frames", "initial_frames", "signatures", "relocalizations")
+                  and isinstance(getattr(seg, f.name), (bool, int, float, str, type(None)))},
+        "signature_image_ids": [int(i) for i in sig_ids],
+        "keyframes": [{"image_id": kf.image_id, "frame_index": kf.frame_index, "timestamp": kf.timestamp}
+                      for kf in kfs],
+        "keyframe_features": _features_to([(kf.features, kf.keypoints, kf.colors, kf.thumbnail, None) for kf in kfs],
+                                          "kf", arrays),
+        "initial_frames": _frame_features_to(seg.initial_frames, "initial", arrays),
+        "registration_order": [int(i) for i in rec.reg_frame_ids()],
+        "max_point3D_id": _max_point3D_id(rec),
+        "modified_points3D": sorted(int(i) for i in slam_map.triangulator.get_modified_points3D()),
+        "next_image_id": int(slam_map._next_image_id),
+        "pending": sorted(int(i) for i in slam_map._pending),
+        "triangulation": slam_map.triangulation.todict(),
+        "camera": slam_map.camera.to_dict(),
+    }
+    np.savez(folder / "arrays.npz", **arrays)
+    return meta
+
+
+def _max_point3D_id(rec: pycolmap.Reconstruction) -> int:
+    """The largest 3D point id the reconstruction ever gave (deleted points included), without changing it:
+    a copy is asked for its next id."""
+    probe = copy.copy(rec)
+    return int(probe.add_point3D(np.zeros(3), pycolmap.Track(), np.zeros(3, np.uint8))) - 1
+
+
+def graph_pairs(slam_map: SlamMap) -> tuple[list[tuple[int, int]], list[np.ndarray]]:
+    """The correspondence graph as image pairs (older, newer) in an order that, replayed with
+    ``SlamMap.add_matches``, gives every keypoint the same correspondence list (same order) as the original.
+
+    Pairs are grouped by the newer image (ascending: each keyframe is matched when it is inserted); within a
+    group the order is recovered from the correspondence lists of the newer image's keypoints, which list the
+    older images in insertion order. Returns (pairs, (M, 2) uint32 matches of each pair).
+    """
+    g = slam_map.graph
+    groups: dict[int, list[int]] = {}
+    for pair_id in g.num_matches_between_all_images():
+        a, b = sorted(pycolmap.pair_id_to_image_pair(pair_id))
+        groups.setdefault(int(b), []).append(int(a))
+    pairs: list[tuple[int, int]] = []
+    for b in sorted(groups):
+        older = sorted(groups[b])
+        if len(older) > 1:
+            older = _insertion_order(g, b, older, slam_map.reconstruction.image(b).num_points2D())
+        pairs.extend((a, b) for a in older)
+    matches = [np.asarray(g.extract_matches_between_images(a, b), np.uint32).reshape(-1, 2) for a, b in pairs]
+    return pairs, matches
+
+
+def _insertion_order(g: pycolmap.CorrespondenceGraph, image_id: int, older: list[int], num_points2D: int
+                     ) -> list[int]:
+    """Order of the pairs (a, image_id), a in ``older``: each keypoint's correspondence list gives a partial
+    order; a topological sort (ties by image id) completes it — unordered pairs never share a list."""
+    after: dict[int, set[int]] = {a: set() for a in older}
+    indegree = dict.fromkeys(older, 0)
+    for j in range(num_points2D):
+        seq = [c.image_id for c in g.extract_correspondences(image_id, j) if c.image_id < image_id]
+        for x, y in zip(seq, seq[1:]):
+            if x != y and y not in after[x]:
+                after[x].add(y)
+                indegree[y] += 1
+    heap = [a for a in older if indegree[a] == 0]
+    heapq.heapify(heap)
+    out = []
+    while heap:
+        a = heapq.heappop(heap)
+        out.append(a)
+        for y in after[a]:
+            indegree[y] -= 1
+            if indegree[y] == 0:
+                heapq.heappush(heap, y)
+    if len(out) != len(older):  # pragma: no cover - contradictory lists cannot come from one insertion order
+        out += [a for a in older if a not in out]
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- loading
+def find_session(path: str | Path) -> Path | None:
+    """The session folder of ``path``: ``path`` itself when it holds ``session.json``, or ``path/session``."""
+    path = Path(path)
+    for candidate in (path, path / SESSION_DIR):
+        if (candidate / SESSION_FILE).is_file():
+            return candidate
+    return None
+
+
+def load_session(path: str | Path, source=None, config: SlamConfig | dict | str | None = None,
+                 callbacks=None, cls=None) -> "Slam":
+    """Rebuild the Slam saved in ``path`` (a session folder or a run folder holding ``session/``).
+
+    source: the frame source (or spec); None opens the spec the session recorded. It must be the source the
+        session was recorded on (same name, frame count, frame ids and timestamps, camera): else SessionError.
+    config: None = the saved config; a dict = overrides of the saved config (``SlamConfig.with_overrides``
+        keys: the explicit way to change a parameter); a SlamConfig (or preset name) must equal the saved one.
+        ``features``, ``matcher`` and ``frame_skip`` cannot change (ConfigError).
+    """
+    from .pipeline import Slam
+
+    cls = cls or Slam
+    folder = find_session(path)
+    if folder is None:
+        raise SessionError(f"{path}: no session found (expected {Path(path) / SESSION_DIR / SESSION_FILE}; "
+                           "a run saved with slam.save() or `slamkit run --out` has one)")
+    try:
+        meta = json.loads((folder / SESSION_FILE).read_text())
+    except (OSError, ValueError) as e:
+        raise SessionError(f"{folder / SESSION_FILE}: cannot be read ({e})") from None
+    if meta.get("format") != FORMAT or meta.get("version") != VERSION:
+        raise SessionError(f"{folder / SESSION_FILE}: not a slamkit session of version {VERSION} "
+                           f"(format {meta.get('format')!r}, version {meta.get('version')!r})")
+    saved_config = SlamConfig.from_dict(meta["config"])
+    cfg = _resolve_config(saved_config, config, folder)
+    if source is None:
+        source = meta["source"].get("spec")
+        if source is None:
+            raise SessionError(f"{folder}: the session does not record how to open its source "
+                               f"({meta['source']['name']!r}); pass source=")
+    slam = cls(source, cfg, callbacks)
+    _check_source(meta["source"], slam.source, folder)
+    if meta["source"].get("spec") and getattr(slam, "source_spec", None) is None:
+        slam.source_spec = meta["source"]["spec"]
+    cursor = int(meta["state"]["_cursor"])
+    if cursor > len(slam.indices):
+        raise ConfigError(f"{folder}: the session processed {cursor} frames but this configuration selects "
+                          f"{len(slam.indices)} (max_frames={cfg.max_frames}); raise max_frames")
+    with _npz(folder / "state.npz") as arrays:
+        _restore(slam, meta, arrays, folder)
+    if not slam.done:
+        slam.finished = False  # more frames to come (max_frames raised): finish() runs again at the end
+    return slam
+
+
+def _resolve_config(saved: SlamConfig, config, folder: Path) -> SlamConfig:
+    if config is None:
+        return saved
+    if isinstance(config, dict):
+        cfg = saved.with_overrides(**config)
+    else:
+        cfg = SlamConfig.preset(config) if isinstance(config, str) else config.validate()
+        diff = _config_diff(saved.to_dict(), cfg.to_dict())
+        if diff:
+            raise ConfigError(f"{folder}: the config differs from the session's in {', '.join(diff)}; pass "
+                              "config=None to continue with the saved one, or a dict of the values to override")
+    for name in STRUCTURAL_FIELDS:
+        if getattr(cfg, name) != getattr(saved, name):
+            raise ConfigError(f"{folder}: {name} cannot change when resuming (session: {getattr(saved, name)!r}, "
+                              f"given: {getattr(cfg, name)!r}); the saved map and frame records depend on it")
+    return cfg
+
+
+def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    out = []
+    for k in sorted(set(a) | set(b)):
+        if isinstance(a.get(k), dict) and isinstance(b.get(k), dict):
+            out += _config_diff(a[k], b[k], f"{prefix}{k}.")
+        elif a.get(k) != b.get(k):
+            out.append(f"{prefix}{k} ({a.get(k)!r} -> {b.get(k)!r})")
+    return out
+
+
+def source_identity(source) -> dict:
+    """Name, frame count, a digest of frame ids and timestamps, and the intrinsics of a frame source."""
+    h = hashlib.sha256()
+    for name, dtype in (("frame_ids", np.int64), ("timestamps", np.float64)):
+        values = getattr(source, name, None)
+        if values is not None:
+            h.update(np.ascontiguousarray(np.asarray(values, dtype)).tobytes())
+    cam = getattr(source, "camera", None)
+    return {"name": str(getattr(source, "name", type(source).__name__)), "frames": int(len(source)),
+            "digest": h.hexdigest()[:16], "camera": cam.to_dict() if cam is not None else None}
+
+
+def _check_source(saved: dict, source, folder: Path) -> None:
+    now = source_identity(source)
+    problems = []
+    if now["name"] != saved["name"]:
+        problems.append(f"name {saved['name']!r} vs {now['name']!r}")
+    if now["frames"] != saved["frames"]:
+        problems.append(f"{saved['frames']} frames vs {now['frames']}")
+    elif now["digest"] != saved["digest"]:
+        problems.append("different frame ids or timestamps")
+    if now["camera"] != saved["camera"]:
+        problems.append(f"intrinsics {saved['camera']} vs {now['camera']}")
+    if problems:
+        raise SessionError(f"{folder}: the session was recorded on another source ({'; '.join(problems)}): "
+                           f"session {saved['name']!r} ({saved['frames']} frames), given {now['name']!r} "
+                           f"({now['frames']} frames)")
+
+
+def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
+    from .pipeline import FrameRecord, Segment
+    from .stages.tracker import LocalMap
+
+    for k, v in meta["state"].items():
+        setattr(slam, k, v)
+    for k, v in meta.get("extra", {}).items():
+        if hasattr(slam, k):
+            setattr(slam, k, v)
+    slam.timings = dict(meta["timings"])
+    if hasattr(slam, "errors"):
+        slam.errors = {int(k): v for k, v in meta.get("errors", {}).items()}
+    slam.records = _records_from(FrameRecord, meta["records"], arrays)
+    slam.segments = []
+    for smeta in meta["segments"]:
+        seg_folder = folder / f"segment_{smeta['id']:02d}"
+        with _npz(seg_folder / "arrays.npz") as seg_arrays:
+            slam_map = _restore_map(slam.camera, smeta, seg_arrays, seg_folder)
+            sigs = _get_list(seg_arrays, "signatures")
+            initial = _frame_features_from(smeta["initial_frames"], "initial", seg_arrays)
+        seg = Segment(int(smeta["id"]), slam_map, frames=list(smeta["frames"]), initial_frames=initial,
+                      signatures=dict(zip(smeta["signature_image_ids"], sigs)),
+                      relocalizations=int(smeta["relocalizations"]))
+        for k, v in smeta.get("extra", {}).items():
+            setattr(seg, k, v)
+        slam.segments.append(seg)
+    cur = meta["current_segment"]
+    slam.segment = slam.segments[cur] if cur is not None else None
+    slam._last_ids = arrays["last_ids"] if "last_ids" in arrays else None
+    lm = meta["local_map"]
+    slam.local_map = None if lm is None else LocalMap(
+        arrays["local_map__ids"], arrays["local_map__xyz"], arrays["local_map__descriptors"], bool(lm["binary"]),
+        int(lm["ref_image_id"]), arrays["local_map__ref_ids"], arrays["local_map__ref_xy"],
+        [int(i) for i in lm["keyframe_ids"]])
+    slam.bundle_adjuster._keyframes_at_last_global = int(meta["bundle_adjuster"]["keyframes_at_last_global"])
+    init, imeta = slam.initializer, meta["initializer"]
+    init.frames = _frame_features_from(imeta["frames"], "init_frames", arrays)
+    init.history = _frame_features_from(imeta["history"], "init_history", arrays)
+    init._matches = {(int(a), int(b)): m for (a, b), m in zip(imeta["matches"], _get_list(arrays, "init_matches"))}
+
+
+def _restore_map(camera: Intrinsics, meta: dict, arrays: dict, folder: Path) -> SlamMap:
+    """A SlamMap equal to the saved one: the model rebuilt image by image in id order (frames registered in
+    the saved order, points with their ids), the graph replayed, then observations and triangulator wired."""
+    try:
+        saved = pycolmap.Reconstruction(str(folder / "model"))
+    except Exception as e:  # noqa: BLE001 - pycolmap raises plain RuntimeError/ValueError
+        raise SessionError(f"{folder / 'model'}: COLMAP model cannot be read ({e})") from None
+    tri = pycolmap.IncrementalTriangulatorOptions()
+    tri.mergedict(meta["triangulation"])
+    slam_map = SlamMap(Intrinsics.from_dict(meta["camera"]), tri)
+    rec, graph = slam_map.reconstruction, slam_map.graph
+    rec.camera(CAMERA_ID).params = saved.camera(CAMERA_ID).params  # refined intrinsics, if any
+    pairs = arrays["graph_pairs"]
+    matches = _get_list(arrays, "graph_matches")
+    by_newer: dict[int, list[int]] = {}
+    for k, (_, b) in enumerate(pairs.tolist()):
+        by_newer.setdefault(b, []).append(k)
+    for iid in sorted(saved.images):
+        image = saved.image(iid)
+        xy = np.array([p.xy for p in image.points2D], np.float64).reshape(-1, 2)
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=xy, camera_id=CAMERA_ID,
+                                                        image_id=iid))
+        graph.add_image(iid, len(xy))
+        for k in by_newer.get(iid, []):
+            slam_map.add_matches(int(pairs[k, 0]), int(pairs[k, 1]), matches[k])
+    for fid in meta["registration_order"]:
+        rec.frame(fid).rig_from_world = copy.copy(saved.frame(fid).rig_from_world)
+        rec.register_frame(fid)
+    for pid in sorted(saved.points3D):
+        rec.add_point3D_with_id(pid, saved.points3D[pid])
+    max_id = int(meta["max_point3D_id"])
+    if max_id > 0 and not rec.exists_point3D(max_id):  # the next new point gets max_id + 1, as before
+        rec.add_point3D_with_id(max_id, pycolmap.Point3D())
+        rec.delete_point3D(max_id)
+    slam_map.rewire()
+    for pid in meta["modified_points3D"]:  # tracks bundle adjustment will complete and merge next
+        slam_map.triangulator.add_modified_point3D(pid)
+    feats = _features_from(meta["keyframe_features"], "kf", arrays)
+    for kmeta, (features, keypoints, colors, thumbnail, _) in zip(meta["keyframes"], feats):
+        kf = Keyframe(int(kmeta["image_id"]), int(kmeta["frame_index"]), float(kmeta["timestamp"]), keypoints,
+                      features, colors, thumbnail)
+        slam_map.keyframes[kf.image_id] = kf
+    slam_map._next_image_id = int(meta["next_image_id"])
+    return slam_map
+
+
+# ----------------------------------------------------------------------------------------------- arrays
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, (tuple, set)):
+        return list(x)
+    raise TypeError(f"session: {type(x).__name__} is not JSON-serialisable")
+
+
+@contextlib.contextmanager
+def _npz(path: Path) -> Iterator[dict]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            yield {k: z[k] for k in z.files}
+    except (OSError, ValueError) as e:
+        raise SessionError(f"{path}: cannot be read ({e})") from None
+
+
+def _put_list(arrays: dict, name: str, values: list) -> None:
+    """Store a list of arrays (any shapes, one dtype, or None) as ``name__shape`` (K, ndim), -1 rows for None,
+    and ``name__data`` (everything flattened and concatenated)."""
+    present = [np.asarray(v) for v in values if v is not None]
+    ndim = max((v.ndim for v in present), default=1)
+    shapes = np.full((len(values), ndim), -1, np.int64)
+    for k, v in enumerate(values):
+        if v is not None:
+            shapes[k] = np.asarray(v).shape
+    arrays[f"{name}__shape"] = shapes
+    arrays[f"{name}__data"] = np.concatenate([v.ravel() for v in present]) if present else np.empty(0)
+
+
+def _get_list(arrays: dict, name: str) -> list:
+    shapes, data = arrays[f"{name}__shape"], arrays[f"{name}__data"]
+    out, at = [], 0
+    for shape in shapes:
+        if shape[0] < 0:
+            out.append(None)
+            continue
+        n = int(np.prod(shape))
+        out.append(data[at:at + n].reshape(tuple(int(s) for s in shape)).copy())
+        at += n
+    return out
+
+
+_FEATURE_LISTS = ("raw_keypoints", "descriptors", "scores", "sizes", "keypoints", "colors", "thumbnail", "signature")
+
+
+def _features_to(items: list[tuple], prefix: str, arrays: dict) -> list[dict]:
+    """items: (Features, keypoints (N, 2) undistorted, colors (N, 3), thumbnail or None, signature or None)."""
+    cols = {name: [] for name in _FEATURE_LISTS}
+    meta = []
+    for feats, kp, colors, thumb, sig in items:
+        for name, v in zip(_FEATURE_LISTS, (feats.keypoints, feats.descriptors, feats.scores, feats.sizes, kp,
+                                            colors, thumb, sig)):
+            cols[name].append(v)
+        meta.append({"binary": bool(feats.binary),
+                     "image_size": list(feats.image_size) if feats.image_size is not None else None})
+    for name, values in cols.items():
+        _put_list(arrays, f"{prefix}_{name}", values)
+    return meta
+
+
+def _features_from(meta: list[dict], prefix: str, arrays: dict) -> list[tuple]:
+    cols = {name: _get_list(arrays, f"{prefix}_{name}") for name in _FEATURE_LISTS}
+    out = []
+    for k, m in enumerate(meta):
+        size = tuple(int(s) for s in m["image_size"]) if m["image_size"] is not None else None
+        feats = Features(cols["raw_keypoints"][k], cols["descriptors"][k], cols["scores"][k], bool(m["binary"]),
+                         cols["sizes"][k], size)
+        out.append((feats, cols["keypoints"][k], cols["colors"][k], cols["thumbnail"][k], cols["signature"][k]))
+    return out
+
+
+def _frame_features_to(frames: list[FrameFeatures], prefix: str, arrays: dict) -> list[dict]:
+    meta = _features_to([(f.features, f.keypoints, f.colors, f.thumbnail, f.signature) for f in frames], prefix,
+                        arrays)
+    return [{"index": int(f.index), "frame_id": int(f.frame_id), "timestamp": float(f.timestamp), **m}
+            for f, m in zip(frames, meta)]
+
+
+def _frame_features_from(meta: list[dict], prefix: str, arrays: dict) -> list[FrameFeatures]:
+    return [FrameFeatures(int(m["index"]), int(m["frame_id"]), float(m["timestamp"]), feats, kp, colors, thumb, sig)
+            for m, (feats, kp, colors, thumb, sig) in zip(meta, _features_from(meta, prefix, arrays))]
+
+
+def _records_to(records: list, arrays: dict) -> dict:
+    """Frame records as JSON columns, array fields (the relative pose) as ``records__<field>`` lists."""
+    cols: dict[str, list] = {}
+    names = [f.name for f in dataclasses.fields(records[0])] if records else []
+    for name in names:
+        values = [getattr(r, name) for r in records]
+        if any(isinstance(v, np.ndarray) for v in values):
+            _put_list(arrays, f"records__{name}", values)
+            cols[name] = "array"
+        else:
+            cols[name] = [v.item() if isinstance(v, np.generic) else v for v in values]
+    return {"count": len(records), "columns": cols}
+
+
+def _records_from(record_cls, meta: dict, arrays: dict) -> list:
+    cols = {name: (_get_list(arrays, f"records__{name}") if values == "array" else values)
+            for name, values in meta["columns"].items()}
+    return [record_cls(**{name: values[i] for name, values in cols.items()}) for i in range(meta["count"])]
+
+
+def _local_map_to(lm, arrays: dict) -> dict:
+    for name in ("ids", "xyz", "descriptors", "ref_ids", "ref_xy"):
+        arrays[f"local_map__{name}"] = np.asarray(getattr(lm, name))
+    return {"binary": bool(lm.binary), "ref_image_id": int(lm.ref_image_id),
+            "keyframe_ids": [int(i) for i in lm.keyframe_ids]}
+
+
+# ----------------------------------------------------------------------------------------------- interruption
+@contextlib.contextmanager
+def deferred_interrupt() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT) back until the block ends, then raise it (``KeyboardInterrupt``).
+
+    Wrapped around one SLAM step (and around saving in the CLI), so an interrupt never leaves half a frame
+    in the map: the step completes, then the interrupt arrives. A second Ctrl-C inside the block interrupts
+    at once. Only in the main thread (signal handlers live there); elsewhere, or when SIGINT is ignored or
+    has its OS default action, the block runs unchanged.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.getsignal(signal.SIGINT)
+    if not callable(previous):  # SIG_IGN, SIG_DFL or not set from Python: leave it alone
+        yield
+        return
+    received: list[tuple] = []
+
+    def hold(signum, frame):
+        if received:
+            raise KeyboardInterrupt
+        received.append((signum, frame))
+
+    signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if received:
+        previous(*received[0])  # Python's default handler raises KeyboardInterrupt
