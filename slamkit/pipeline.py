@@ -33,6 +33,8 @@ RETRACK_BELOW_KEYFRAMES = 5
 
 # frame statuses
 INITIALIZING, INITIALIZED, TRACKED, LOST, SKIPPED = "initializing", "initialized", "tracked", "lost", "skipped"
+ERROR = "error"
+"""A stage raised while processing the frame (``Slam.errors`` has the message); see :meth:`Slam.step`."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,6 +168,8 @@ class Slam:
         self.last_features: FrameFeatures | None = None
         self.last_result: StepResult | None = None
         self.finished = False
+        self.errors: dict[int, str] = {}
+        """Frame index -> the exception a stage raised on it (those frames have status ``"error"``)."""
 
     @property
     def done(self) -> bool:
@@ -189,9 +193,49 @@ class Slam:
 
     # ----------------------------------------------------------------- one frame
     def step(self) -> StepResult:
-        """Process the next frame and return what happened to it."""
+        """Process the next frame and return what happened to it.
+
+        Interruptions never leave half a frame: Ctrl-C (SIGINT, "interrupt kernel") during a step is held
+        back until the frame is done, then raises KeyboardInterrupt. An exception in a stage propagates (with a
+        note naming the frame) after the frame is marked ``"error"`` without a pose (message in
+        :attr:`errors`); every earlier frame is kept, :meth:`save` works, and ``step()`` goes on with the next
+        frame. Like COLMAP's mapper, a failure stops the loop rather than being hidden in a status.
+        """
         if self.done:
             raise StopIteration("no frames left")
+        from .session import deferred_interrupt
+
+        cursor, num_records, last_result = self._cursor, len(self.records), self.last_result
+        with deferred_interrupt():
+            try:
+                return self._step()
+            except BaseException as e:
+                self._step_failed(e, cursor, num_records, last_result)
+                raise
+
+    def _step_failed(self, e: BaseException, cursor: int, num_records: int, last_result) -> None:
+        """Leave the state of whole frames after ``_step`` raised: the frame is consumed and marked "error"
+        without a pose (unless it already became a keyframe, or only a callback failed after it was done)."""
+        self._cursor = max(self._cursor, cursor + 1)
+        if len(self.records) == num_records:  # failed before its record existed (reading, features)
+            i = int(self.indices[cursor])
+            ids, ts = getattr(self.source, "frame_ids", None), getattr(self.source, "timestamps", None)
+            self.records.append(FrameRecord(cursor, int(ids[i]) if ids is not None else i,
+                                            float(ts[i]) if ts is not None else float("nan"), ERROR))
+        rec = self.records[num_records]
+        done = self.last_result is not last_result  # the step finished; a callback raised
+        if not done:
+            if rec.rel_pose is not None and rec.keyframe_image_id < 0:
+                if 0 <= rec.segment < len(self.segments) and rec.index in self.segments[rec.segment].frames:
+                    self.segments[rec.segment].frames.remove(rec.index)
+                rec.rel_pose, rec.ref_image_id, rec.segment = None, -1, -1
+            rec.status = ERROR
+        self.errors[rec.index] = f"{type(e).__name__}: {e}" + (" (in a callback)" if done else "")
+        e.add_note(f"slamkit: while processing frame {rec.index} (frame id {rec.frame_id})"
+                   + (" in a callback, after the frame was processed" if done else "")
+                   + "; earlier frames are kept, save() works, step() continues with the next frame")
+
+    def _step(self) -> StepResult:
         t_start = time.perf_counter()
         cpu_start = time.process_time()
         timings: dict[str, float] = {}

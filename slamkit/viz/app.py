@@ -405,8 +405,12 @@ class SlamApp:
             while self._running and not self.slam.done:
                 self.step()
                 await asyncio.sleep(0)  # the kernel handles widget messages (Pause, sliders) between frames
+        except KeyboardInterrupt:  # "interrupt kernel": Slam.step finishes the frame first, so the state is whole
+            self._status(f"⏸ interrupted after frame {len(self.slam.records) - 1}: the map so far is intact; Save "
+                         "writes it with a session (Slam.resume continues it), Run goes on", "#b06000")
         except Exception as e:  # noqa: BLE001 - a background task has nobody else to tell
-            self._status(f"⚠ run stopped: {type(e).__name__}: {e}", "#b00020")
+            self._status(f"⚠ run stopped: {type(e).__name__}: {e}; the frames before are kept, Save writes them",
+                         "#b00020")
             self.last_error = traceback.format_exc()
         finally:
             self._running = False
@@ -451,7 +455,7 @@ class SlamApp:
         """Save the current map and trajectory (``slam.save``) to the output folder."""
         out = Path(out_dir or self.w_out.value)
         path = self.slam.save(out)
-        self._status(f"saved to {path} (trajectory_tum.txt, sparse/, points.ply, summary.json)")
+        self._status(f"saved to {path} (trajectory_tum.txt, sparse/, points.ply, summary.json, session/ to resume)")
         return path
 
     def load(self, run_dir: str | Path | None = None) -> None:
