@@ -13,7 +13,7 @@ from .errors import SlamkitError
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("configuration (see slamkit.SlamConfig)")
-    g.add_argument("--preset", default="default", help="named preset (slamkit presets lists them)")
+    g.add_argument("--preset", help="named preset (slamkit presets lists them; default: default)")
     g.add_argument("--features", help="features: orb (default), sift, xfeat (XFeat + mutual NN), xfeat-lighterglue, "
                                       "aliked-lightglue, superpoint-superglue (learned ones: pip install 'slamkit[learned]')")
     g.add_argument("--matcher", help="pair matcher: nn (default), lighterglue (xfeat), lightglue (aliked), superglue")
@@ -34,7 +34,11 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace):
     from .config import SlamConfig
 
-    cfg = SlamConfig.preset(args.preset)
+    return SlamConfig.preset(args.preset or "default").with_overrides(**_overrides_from_args(args))
+
+
+def _overrides_from_args(args: argparse.Namespace) -> dict:
+    """The configuration values given explicitly on the command line (options and --set), preset excluded."""
     over = {k: getattr(args, k) for k in ("features", "matcher", "weights_dir", "num_features", "flow_threshold",
                                           "min_tracked_matches",
                                           "init_frames", "init_strategy", "frame_skip", "max_frames", "seed")
@@ -44,42 +48,73 @@ def config_from_args(args: argparse.Namespace):
             raise SlamkitError(f"--set {item!r}: expected KEY=VALUE")
         k, v = item.split("=", 1)
         over[k.strip()] = v.strip()
-    return cfg.with_overrides(**over)
+    return over
+
+
+def _resume_overrides(args: argparse.Namespace) -> dict:
+    """With --resume: the saved config stays, changed only by what is given explicitly (a --preset's values,
+    then the options)."""
+    from .config import PRESETS, SlamConfig
+
+    if args.preset is not None:
+        SlamConfig.preset(args.preset)  # unknown name -> ConfigError
+        return {**PRESETS[args.preset], **_overrides_from_args(args)}
+    return _overrides_from_args(args)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    """Run (or with --resume continue) SLAM; on Ctrl-C or a failing stage, save what was built and say so."""
+    import shlex
+
     import pycolmap
     from tqdm import tqdm
 
     from .pipeline import Slam
-    from .sources import open_source
+    from .session import deferred_interrupt, find_session
 
     pycolmap.logging.minloglevel = 2
-    cfg = config_from_args(args)
-    source = open_source(args.source)
-    slam = Slam(source, cfg)
     out = Path(args.out)
-    print(f"slamkit: {source!r}, {len(slam)} frames to process -> {out}", file=sys.stderr)
-    bar = tqdm(total=len(slam), unit="frame", disable=args.quiet, dynamic_ncols=True)
-    interrupted = None
+    slam = None
+    if args.resume:
+        session = find_session(out)
+        if session is None:
+            print(f"slamkit: no session in {out}; starting a new run", file=sys.stderr)
+        else:
+            slam = Slam.resume(session, args.source, _resume_overrides(args) or None)
+            print(f"slamkit: resuming the session in {session} after frame {len(slam.records)}", file=sys.stderr)
+    if slam is None:
+        slam = Slam(args.source, config_from_args(args))
+    print(f"slamkit: {slam.source!r}, {len(slam) - len(slam.records)} frames to process -> {out}", file=sys.stderr)
+    bar = tqdm(total=len(slam), initial=len(slam.records), unit="frame", disable=args.quiet, dynamic_ncols=True)
+    code, stopped = 0, ""
     try:
         for r in slam:
             bar.update(1)
             bar.set_postfix_str(f"{r.status} kf={r.num_keyframes} pts={r.num_points}", refresh=False)
             if args.verbose:
                 tqdm.write(str(r))
-        slam.finish()
+        with deferred_interrupt():  # the final bundle adjustment is not cut in half either
+            slam.finish()
     except KeyboardInterrupt:
-        interrupted = "interrupted by the user"
+        code, stopped = 130, f"interrupted after frame {len(slam.records) - 1} ({len(slam.records)}/{len(slam)} frames)"
     except Exception as e:  # a stage failed: keep what was built, then report
-        interrupted = f"{type(e).__name__}: {e}"
+        last = slam.records[-1] if slam.records else None
+        failed = last is not None and last.index in slam.errors
+        where = (f"frame {last.index} (frame id {last.frame_id}) failed" if failed
+                 else "finishing the run failed" if slam.done else f"failed after frame {len(slam.records) - 1}")
+        code, stopped = 1, f"{where}: {type(e).__name__}: {e}"
         if not isinstance(e, SlamkitError):
             import traceback
 
             traceback.print_exc()
     finally:
         bar.close()
-    slam.save(out)
+    try:
+        with deferred_interrupt():  # a first Ctrl-C waits for the (atomic) save to finish
+            slam.save(out)
+    except KeyboardInterrupt:
+        print(f"slamkit: interrupted while saving; {out} was left as it was", file=sys.stderr)
+        return 130
     s = slam.summary()
     print(f"frames {s['frames']}/{s['frames_total']}, posed {s['frames_posed']} ({100 * s['fraction_posed']:.1f} %), "
           f"keyframes {s['keyframes']}, points {s['points3D']}, {s['fps']:.1f} frames/s", file=sys.stderr)
@@ -94,12 +129,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         except SlamkitError as e:
             print(f"evaluation skipped: {e}", file=sys.stderr)
     print(f"outputs in {out}/ (trajectory_tum.txt, keyframes_tum.txt, trajectory_kitti.txt, sparse/, points.ply, "
-          f"summary.json)")
-    if interrupted:
-        print(f"slamkit: stopped early ({interrupted}); the map and trajectory so far are saved in {out}",
-              file=sys.stderr)
-        return 130 if interrupted.startswith("interrupted") else 1
-    return 0
+          f"summary.json, session/)")
+    if stopped:
+        again = f"slamkit run {shlex.quote(args.source)} --out {shlex.quote(str(out))} --resume"
+        print(f"slamkit: {stopped}; the map, trajectory and session so far are saved in {out} "
+              f"(continue with: {again})", file=sys.stderr)
+    return code
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -195,7 +230,10 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run SLAM on a source and save the map and trajectory")
     r.add_argument("source", help="'default', 'synthetic:<motion>', a dataset folder, an image folder or a video")
-    r.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    r.add_argument("--out", required=True, help="output folder (replaced atomically; keeps a session/ to resume)")
+    r.add_argument("--resume", action="store_true",
+                   help="continue the run saved in --out (its session/) if there is one: same source, the saved "
+                        "config changed only by the options given; else start a new run")
     r.add_argument("-v", "--verbose", action="store_true", help="print every frame's result")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_config_args(r)
