@@ -206,6 +206,9 @@ def _set(obj: Any, path: list[str], value: Any, key: str) -> Any:
         if not dataclasses.is_dataclass(current):
             raise ConfigError(f"configuration parameter {key!r}: {path[0]!r} has no sub-fields")
         return replace(obj, **{path[0]: _set(current, path[1:], value, key)})
+    if value is None or (isinstance(value, str) and value in ("", "none", "None")):
+        if "None" in str(names[path[0]].type):  # optional parameter (max_frames, weights_dir, ...)
+            return replace(obj, **{path[0]: None})
     return replace(obj, **{path[0]: _coerce(current, value, key)})
 
 

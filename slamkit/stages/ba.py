@@ -163,7 +163,7 @@ class BundleAdjuster:
     def _maintain(self, slam_map: SlamMap, image_ids: set[int] | None) -> tuple[int, int, int]:
         """Complete and merge modified tracks, then filter (COLMAP's IterativeLocalRefinement order)."""
         tri, opts = slam_map.triangulator, slam_map.triangulation
-        modified = tri.get_modified_points3D()
+        modified = set(sorted(tri.get_modified_points3D()))  # order independent of the set's history
         completed = tri.complete_tracks(opts, modified) if modified else 0
         merged = tri.merge_tracks(opts, modified) if modified else 0
         tri.clear_modified_points3D()
