@@ -23,7 +23,7 @@ from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
 from .stages.flow import flow_score
 from .stages.initializer import Initializer
-from .stages.keyframes import KeyframeDecision, KeyframeSelector
+from .stages.keyframes import KeyframeDecision, KeyframeSelector, median_parallax_deg
 from .stages.mapper import Mapper
 from .stages.tracker import LocalMap, Tracker
 from .types import Frame, Trajectory
@@ -63,6 +63,11 @@ class StepResult:
     """Frames that received a pose with this step (the initialization window on success)."""
     relocalized: bool = False
     """The local map lost the frame and relocalization against all keyframes found it."""
+    degenerate: bool = False
+    """Degenerate motion (e.g. pure rotation): a keyframe was due but refused for too little parallax to
+    the last keyframe; the frame is tracked by PnP only (``keyframe_reason`` gives the numbers)."""
+    parallax_deg: float = float("nan")
+    """Median parallax (triangulation angle, rotation removed) of the tracked matches to the last keyframe."""
 
     @property
     def has_pose(self) -> bool:
@@ -93,6 +98,7 @@ class FrameRecord:
     ref_image_id: int = -1
     rel_pose: np.ndarray | None = None
     keyframe_image_id: int = -1
+    degenerate: bool = False
 
 
 @dataclass(eq=False)
@@ -373,7 +379,11 @@ class Slam:
             seg.initial_frames.append(ff)
         t = time.perf_counter()
         flow = flow_score(tr.ref_xy, tr.cur_xy, self.camera.fx, self.camera.fy)
-        decision = self.selector.step(flow, tr.ref_matches, tr.num_inliers, self._points_at_last_keyframe)
+        parallax, rotation = median_parallax_deg(tr.ref_xy, tr.cur_xy, slam_map.cam_from_world(
+            self.last_keyframe).matrix(), tr.cam_from_world, self.camera.K)
+        decision = self.selector.step(flow, tr.ref_matches, tr.num_inliers, self._points_at_last_keyframe,
+                                      parallax, rotation)
+        record.degenerate = decision.degenerate
         timings["keyframe"] = time.perf_counter() - t
         ba_kind = ""
         message = (f"relocalized against keyframe {self.last_keyframe}: " if relocalized else "") + tr.reason
@@ -407,6 +417,7 @@ class Slam:
                 decision = KeyframeDecision(False, f"keyframe rejected: {mres.reason}", flow, tr.ref_matches)
         return self._result(record, TRACKED, message, timings, decision=decision, matches=tr.ref_matches,
                             inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
+                            degenerate=decision.degenerate, parallax_deg=parallax,
                             relocalized=relocalized)
 
     def _relocalize(self, ff: FrameFeatures):
@@ -594,6 +605,7 @@ class Slam:
             "frames_posed": int(posed),
             "frames_lost": int(lost),
             "frames_skipped": int(sum(r.status == SKIPPED for r in self.records)),
+            "frames_degenerate": int(sum(r.degenerate for r in self.records)),
             "fraction_posed": posed / n if n else 0.0,
             "keyframes": n_kf,
             "points3D": slam_map.num_points if slam_map else 0,

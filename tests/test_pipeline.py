@@ -123,6 +123,36 @@ def test_pure_rotation_does_not_initialize_and_says_why():
     assert slam.summary()["frames_posed"] == 0
 
 
+def test_rotation_in_place_after_a_translation_is_tracked_without_keyframes():
+    """synthetic:translate-then-rotate: 40 frames sideways, then a +-25 degree pan about a fixed centre."""
+    src = open_source("synthetic:translate-then-rotate?frames=110")
+    slam = Slam(src, SlamConfig())
+    results = slam.run()
+    s = slam.summary()
+    assert s["frames_posed"] == len(src) == 110 and len(s["segments"]) == 1  # every frame posed, one map
+    turning = results[41:]  # frames 39.. share one centre; 39-40 may still see the translation to the last keyframe
+    assert not any(r.is_keyframe for r in turning)
+    assert turning[-1].num_keyframes == results[40].num_keyframes
+    degenerate = [r for r in turning if r.degenerate]
+    assert len(degenerate) >= 40 and s["frames_degenerate"] == sum(r.degenerate for r in results)
+    thr = slam.config.keyframes.min_parallax_deg
+    for r in turning:  # each frame says why it is not a keyframe
+        assert r.status == "tracked" and r.has_pose
+        if r.degenerate:
+            assert r.keyframe_reason.startswith("degenerate motion: median parallax")
+            assert "pure rotation" in r.keyframe_reason and r.parallax_deg < thr
+        else:
+            assert r.keyframe_reason.startswith("flow") and r.flow <= slam.config.keyframes.flow_threshold
+    # tracked by PnP against the points mapped during the translation: rotations exact, centre fixed
+    est, gt = slam.trajectory().poses, src.gt_poses
+    rel_est = np.linalg.inv(est[39]) @ est[39:]
+    rel_gt = np.linalg.inv(gt[39]) @ gt[39:]
+    cos = (np.trace(rel_est[:, :3, :3].transpose(0, 2, 1) @ rel_gt[:, :3, :3], axis1=1, axis2=2) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 0.5
+    baseline = np.linalg.norm(est[39, :3, 3] - est[0, :3, 3])  # 0.585 m in the map's scale
+    assert np.linalg.norm(est[39:, :3, 3] - est[39, :3, 3], axis=1).max() < 0.05 * baseline
+
+
 def test_frame_skip_and_max_frames_apply():
     src = open_source("synthetic:sideways?frames=40")
     slam = Slam(src, SlamConfig(frame_skip=3, max_frames=10))

@@ -16,7 +16,7 @@ from slamkit.map import SlamMap, matrix_from_rigid, rigid_from_matrix
 from slamkit.sources import open_source
 from slamkit.stages.flow import flow_score
 from slamkit.stages.initializer import Initializer, InitializerConfig
-from slamkit.stages.keyframes import KeyframeConfig, KeyframeSelector
+from slamkit.stages.keyframes import KeyframeConfig, KeyframeSelector, median_parallax_deg
 from slamkit.stages.mapper import Mapper, sampson_error_px
 from slamkit.stages.tracker import LocalMap, Tracker
 
@@ -71,6 +71,58 @@ def test_keyframe_config_rejects_bad_values():
         KeyframeSelector(KeyframeConfig(flow_threshold=-0.1))
     with pytest.raises(ConfigError, match="min_tracked_matches"):
         KeyframeSelector(KeyframeConfig(min_tracked_matches=0))
+    with pytest.raises(ConfigError, match="min_parallax_deg"):
+        KeyframeSelector(KeyframeConfig(min_parallax_deg=-1.0))
+
+
+@pytest.mark.parametrize("flow,points,parallax,rotation,keyframe,degenerate,words", [
+    (0.2, 300, 0.08, 10.0, False, True, "pure rotation: 10.0° rotation"),   # flow from rotation only
+    (0.02, 100, 0.1, 3.0, False, True, "tracking weakening"),              # weak tracking, no parallax
+    (0.2, 300, 0.2, 0.3, False, True, "too little translation"),           # barely any motion at all
+    (0.2, 300, 2.0, 10.0, True, False, "flow 0.200 > 0.05"),                # enough parallax
+    (0.2, 300, float("nan"), float("nan"), True, False, "flow"),            # not measured: no test
+    (0.02, 300, 0.05, 10.0, False, False, "flow 0.020 <= 0.05"),            # no keyframe due anyway
+])
+def test_degenerate_motion_refuses_keyframes_and_says_why(flow, points, parallax, rotation, keyframe, degenerate,
+                                                          words):
+    sel = KeyframeSelector(KeyframeConfig(flow_threshold=0.05, min_tracked_matches=50, min_parallax_deg=0.5))
+    d = sel.step(flow, 60, points, 300, parallax, rotation)
+    assert (d.is_keyframe, d.degenerate) == (keyframe, degenerate)
+    assert words in d.reason
+    if degenerate:
+        assert d.reason.startswith(f"degenerate motion: median parallax {parallax:.2f}° < 0.5°")
+    off = KeyframeSelector(KeyframeConfig(flow_threshold=0.05, min_tracked_matches=50, min_parallax_deg=0.0))
+    assert not off.step(flow, 60, points, 300, parallax, rotation).degenerate  # 0 disables the test
+
+
+def test_median_parallax_is_the_triangulation_angle_and_zero_for_pure_rotation():
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-2, -1.5, 3], [2, 1.5, 6], (200, 3))  # world points in front of camera A = identity
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+
+    def pose(rvec, centre):
+        import cv2
+
+        T = np.eye(4)
+        T[:3, :3] = cv2.Rodrigues(np.asarray(rvec, float))[0]
+        T[:3, 3] = -T[:3, :3] @ np.asarray(centre, float)
+        return T
+
+    def project(T):
+        x = (X @ T[:3, :3].T + T[:3, 3]) @ K.T
+        return x[:, :2] / x[:, 2:]
+
+    A = np.eye(4)
+    rot = pose([0.02, 0.25, 0.05], [0, 0, 0])  # 15 degrees of pure rotation
+    par, angle = median_parallax_deg(project(A), project(rot), A, rot, K)
+    assert par < 1e-6 and angle == pytest.approx(math.degrees(np.linalg.norm([0.02, 0.25, 0.05])), abs=1e-6)
+    moved = pose([0.02, 0.25, 0.05], [0.3, 0.05, 0.1])  # the same rotation and a 0.3 m baseline
+    c = -moved[:3, :3].T @ moved[:3, 3]
+    cos = np.einsum("ij,ij->i", X, X - c) / (np.linalg.norm(X, axis=1) * np.linalg.norm(X - c, axis=1))
+    exact = np.median(np.degrees(np.arccos(np.clip(cos, -1, 1))))
+    par, _ = median_parallax_deg(project(A), project(moved), A, moved, K)
+    assert par == pytest.approx(exact, abs=1e-6) and par > 2
+    assert math.isnan(median_parallax_deg(np.empty((0, 2)), np.empty((0, 2)), A, moved, K)[0])
 
 
 # ----------------------------------------------------------------------------- features and matching

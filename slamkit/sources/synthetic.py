@@ -10,7 +10,8 @@ explains the renderer). Specs understood by :func:`open_synthetic` (and by ``ope
     synthetic:<motion>?k=v&k=v       with parameters, e.g. ``synthetic:handheld?frames=200&seed=1``
 
 Motions (:data:`MOTIONS`): ``sideways``, ``forward``, ``orbit``, ``rotation`` (pure rotation, zero
-baseline), ``loop`` (returns exactly to its start), ``handheld`` (smooth random motion) and ``default``
+baseline), ``translate-then-rotate`` (sideways, then pure rotation in place: degenerate motion after
+initialization), ``loop`` (returns exactly to its start), ``handheld`` (smooth random motion) and ``default``
 (the motion of the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence
 before JPEG compression). Parameters of every motion:
 
@@ -149,6 +150,35 @@ def rotation(n: int = 150, amplitude: float = 40.0) -> np.ndarray:
     return _poses_looking_at(np.tile(c, (n, 1)), c + dirs)
 
 
+def translate_then_rotate(n: int = 150, translation: int = 40, speed: float = 0.015,
+                          amplitude: float = 25.0) -> np.ndarray:
+    """Degenerate motion after a good start: the first ``translation`` frames move sideways (as
+    :func:`sideways`, ``speed`` metres per frame, from x = -0.3 m) looking at the front wall, then the camera
+    stops and rotates in place (zero baseline): it pans +-``amplitude`` degrees (one sine period) and tilts
+    a little. Frames ``translation - 1`` to ``n - 1`` share one camera centre."""
+    n, speed = _check_frames(n), _check_positive("speed", speed)
+    amplitude = _check_positive("amplitude", amplitude)
+    if int(translation) != translation or not 2 <= translation < n:
+        raise ConfigError(f"translation must be an integer number of frames in [2, frames) (got {translation})")
+    if amplitude > 60:
+        raise ConfigError(f"amplitude must be <= 60 degrees (got {amplitude})")
+    if (translation - 1) * speed > 1.5:
+        raise ConfigError(f"translation x speed must be <= 1.5 m to stay in the room (got "
+                          f"{(translation - 1) * speed:g} m)")
+    t = int(translation)
+    gaze = np.array([0.0, 3.0, -0.15])
+    centers = np.stack([-0.3 + np.arange(t) * speed, np.full(t, -1.0), np.full(t, 1.45)], axis=1)
+    moving = _poses_looking_at(centers, centers + gaze)
+    m = n - t + 1  # rotation frames, the first of which is the last translation frame
+    phase = 2 * np.pi * np.arange(m) / (m - 1)
+    yaw = np.radians(amplitude) * np.sin(phase)
+    pitch = math.atan2(gaze[2], gaze[1]) + np.radians(3.0) * np.sin(2 * phase)
+    dirs = np.stack([np.sin(yaw) * np.cos(pitch), np.cos(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
+    c = centers[-1]
+    turning = _poses_looking_at(np.tile(c, (m, 1)), c + dirs)
+    return np.concatenate([moving, turning[1:]])
+
+
 def _periodic_noise(n: int, rng: np.random.Generator, amplitude: float, cycles: tuple[int, int],
                     terms: int = 4) -> np.ndarray:
     """(n,) smooth random signal, a sum of ``terms`` sinusoids with whole numbers of periods over the n
@@ -223,6 +253,7 @@ MOTIONS: dict[str, Callable[..., np.ndarray]] = {
     "forward": forward,
     "orbit": orbit,
     "rotation": rotation,
+    "translate-then-rotate": translate_then_rotate,
     "loop": loop,
     "handheld": handheld,
     "default": default_motion,
@@ -559,5 +590,5 @@ __all__ = [
     "DEFAULT_CAMERA", "DEFAULT_VERSION", "MOTIONS", "SyntheticSource", "cache_root", "default_motion",
     "default_sequence_dir", "default_source", "ensure_default_sequence", "forward", "handheld", "loop",
     "open_default", "open_synthetic", "open_tum_sequence", "orbit", "parse_spec", "rotation", "sideways",
-    "synthetic_source", "write_tum_sequence",
+    "synthetic_source", "translate_then_rotate", "write_tum_sequence",
 ]

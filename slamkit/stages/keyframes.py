@@ -1,10 +1,22 @@
-"""Keyframe selection (seed §3.4, with ORB-SLAM's "before tracking becomes weak" rule)."""
+"""Keyframe selection (seed §3.4, with ORB-SLAM's "before tracking becomes weak" rule) and the
+degenerate-motion test (too little parallax to the last keyframe, e.g. pure rotation).
+
+A frame whose flow or weak tracking asks for a keyframe is still refused when the median triangulation
+angle of its tracked matches to the last keyframe (:func:`median_parallax_deg`, the relative rotation
+removed, as in ORB-SLAM's and COLMAP's initialization checks) is below ``min_parallax_deg``: a keyframe
+taken then would only add points triangulated from (nearly) parallel rays. Such frames stay tracked by PnP
+against the existing points and their decision says ``degenerate``.
+"""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from ..errors import ConfigError
+from .initializer import parallax_deg
 
 
 @dataclass(frozen=True)
@@ -18,6 +30,11 @@ class KeyframeConfig:
     the last keyframe, so fast motion does not lose the map (0 disables)."""
     min_weak_tracked_matches: int = 20
     """The weak-tracking rule needs at least this many tracked matches to the last keyframe."""
+    min_parallax_deg: float = 0.25
+    """Degenerate motion: no keyframe (and so no new points) while the median parallax (triangulation
+    angle, relative rotation removed) of the tracked matches to the last keyframe is below this, degrees;
+    0 disables the test. Pure rotation measures ~0.1 (keypoint noise); keyframes of real sequences are
+    taken at 0.3-1 when the camera turns (KITTI 07, 7-Scenes), where a higher value loses the map."""
 
     def validate(self) -> None:
         if not self.flow_threshold >= 0:
@@ -26,6 +43,8 @@ class KeyframeConfig:
             raise ConfigError(f"keyframes.min_tracked_matches must be >= 1 (got {self.min_tracked_matches})")
         if not 0 <= self.weak_tracking_ratio < 1:
             raise ConfigError(f"keyframes.weak_tracking_ratio must be in [0, 1) (got {self.weak_tracking_ratio})")
+        if not 0 <= self.min_parallax_deg < 45:
+            raise ConfigError(f"keyframes.min_parallax_deg must be in [0, 45) degrees (got {self.min_parallax_deg})")
 
 
 @dataclass(frozen=True)
@@ -34,6 +53,27 @@ class KeyframeDecision:
     reason: str
     flow: float
     tracked_matches: int
+    parallax_deg: float = float("nan")
+    """Median parallax to the last keyframe, degrees (NaN when not measured)."""
+    degenerate: bool = False
+    """A keyframe was due (flow or weak tracking) but refused: too little parallax (degenerate motion)."""
+
+
+def median_parallax_deg(ref_xy: np.ndarray, cur_xy: np.ndarray, ref_from_world: np.ndarray,
+                        cur_from_world: np.ndarray, K: np.ndarray) -> tuple[float, float]:
+    """Median parallax of matches between the last keyframe and the current frame, and their rotation.
+
+    ref_xy, cur_xy: (N, 2) undistorted pixels of the same map points in both; ref_from_world,
+    cur_from_world: (4, 4) or (3, 4) poses; K: (3, 3). Returns (median triangulation angle of the viewing
+    rays after removing the relative rotation, relative rotation angle), both in degrees; the median is NaN
+    without matches. Independent of the map's scale; pure rotation gives ~0 whatever the rotation.
+    """
+    R = np.asarray(cur_from_world)[:3, :3] @ np.asarray(ref_from_world)[:3, :3].T  # cur_from_ref
+    rotation = math.degrees(math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    if len(ref_xy) == 0:
+        return float("nan"), rotation
+    angles = parallax_deg(np.asarray(ref_xy, np.float64), np.asarray(cur_xy, np.float64), R, np.asarray(K))
+    return float(np.median(angles)), rotation
 
 
 class KeyframeSelector:
@@ -43,10 +83,28 @@ class KeyframeSelector:
         config.validate()
         self.config = config
 
-    def step(self, flow: float, tracked_matches: int, tracked_points: int, points_at_last_keyframe: int
-             ) -> KeyframeDecision:
+    def step(self, flow: float, tracked_matches: int, tracked_points: int, points_at_last_keyframe: int,
+             parallax_deg: float = float("nan"), rotation_deg: float = float("nan")) -> KeyframeDecision:
         """flow: score to the last keyframe; tracked_matches: inlier matches to points of the last keyframe;
-        tracked_points: inlier map points of this frame; points_at_last_keyframe: those of the last keyframe."""
+        tracked_points: inlier map points of this frame; points_at_last_keyframe: those of the last keyframe;
+        parallax_deg, rotation_deg: :func:`median_parallax_deg` to the last keyframe (NaN: not measured,
+        no degenerate-motion test)."""
+        d = self._decide(flow, tracked_matches, tracked_points, points_at_last_keyframe)
+        c = self.config
+        if d.is_keyframe and c.min_parallax_deg > 0 and parallax_deg < c.min_parallax_deg:  # NaN: False
+            if math.isnan(rotation_deg):
+                kind = "too little parallax"
+            elif rotation_deg >= 2 * c.min_parallax_deg:
+                kind = f"pure rotation: {rotation_deg:.1f}° rotation"
+            else:
+                kind = f"too little translation, {rotation_deg:.1f}° rotation"
+            return KeyframeDecision(False, f"degenerate motion: median parallax {parallax_deg:.2f}° < "
+                                           f"{c.min_parallax_deg:g}° ({kind}); would be a keyframe by "
+                                           f"{d.reason}", flow, tracked_matches, parallax_deg, True)
+        return KeyframeDecision(d.is_keyframe, d.reason, flow, tracked_matches, parallax_deg)
+
+    def _decide(self, flow: float, tracked_matches: int, tracked_points: int, points_at_last_keyframe: int
+                ) -> KeyframeDecision:
         c = self.config
         enough = tracked_matches >= c.min_tracked_matches
         if flow > c.flow_threshold and enough:
