@@ -71,6 +71,18 @@ class Intrinsics:
         """The same camera without distortion (the camera of undistorted keypoints)."""
         return replace(self, dist=(0.0, 0.0, 0.0, 0.0, 0.0))
 
+    def check_centred(self, where: str = "intrinsics") -> None:
+        """Raise :class:`CalibrationError` when the principal point is more than a quarter of the image
+        size away from the image centre: intrinsics from a calibration file without an image size (KITTI
+        ``calib.txt``, 7-Scenes ``camera-intrinsics.txt``) were then almost surely measured for images of
+        another size (about ``2 cx`` x ``2 cy``)."""
+        if abs(self.cx - self.width / 2) < self.width / 4 and abs(self.cy - self.height / 2) < self.height / 4:
+            return
+        raise CalibrationError(
+            f"{where}: principal point ({self.cx:.1f}, {self.cy:.1f}) is far from the centre of the "
+            f"{self.width}x{self.height} images: the intrinsics are probably for another image size (about "
+            f"{2 * self.cx + 1:.0f}x{2 * self.cy + 1:.0f}); pass camera=Intrinsics(...) if they are right")
+
     def check_image(self, shape: tuple[int, ...], where: str = "image") -> None:
         """Raise :class:`CalibrationError` when an image of ``shape`` (H, W[, C]) does not fit."""
         h, w = int(shape[0]), int(shape[1])

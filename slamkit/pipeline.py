@@ -16,7 +16,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .config import SlamConfig
-from .errors import ConfigError
+from .errors import CalibrationError, ConfigError, ImageReadError
 from .features import FrameFeatures, create_extractor, create_matcher, image_signature
 from .map import SlamMap
 from .sources.base import FrameSource
@@ -99,6 +99,9 @@ class FrameRecord:
     rel_pose: np.ndarray | None = None
     keyframe_image_id: int = -1
     degenerate: bool = False
+    unreadable: str = ""
+    """Why the source could not deliver the frame (corrupt file, undecodable video frame, another image
+    size), when it was skipped for that."""
 
 
 @dataclass(eq=False)
@@ -174,6 +177,7 @@ class Slam:
         self.last_features: FrameFeatures | None = None
         self.last_result: StepResult | None = None
         self.finished = False
+        self._init_message = ""
         self.errors: dict[int, str] = {}
         """Frame index -> the exception a stage raised on it (those frames have status ``"error"``)."""
 
@@ -246,7 +250,10 @@ class Slam:
         cpu_start = time.process_time()
         timings: dict[str, float] = {}
         t = time.perf_counter()
-        frame = self.source[int(self.indices[self._cursor])]
+        try:
+            frame = self.source[int(self.indices[self._cursor])]
+        except (ImageReadError, CalibrationError) as e:  # a bad frame is skipped with its reason
+            return self._skip_unreadable(e, timings, t_start, cpu_start)
         frame = _reindexed(frame, self._cursor)
         timings["read"] = time.perf_counter() - t
         self._cursor += 1
@@ -264,6 +271,24 @@ class Slam:
         self.cpu_time += time.process_time() - cpu_start
         for k, v in timings.items():
             self.timings[k] = self.timings.get(k, 0.0) + v
+        self.last_result = result
+        for cb in self.callbacks:
+            cb(self, result)
+        return result
+
+    def _skip_unreadable(self, error: Exception, timings: dict, t_start: float, cpu_start: float) -> StepResult:
+        """A frame the source cannot deliver: status "skipped", the source's message (file, frame) in the
+        result and in ``summary()["unreadable_frames"]``; the map and the tracking state are untouched."""
+        i = int(self.indices[self._cursor])
+        record = FrameRecord(self._cursor, int(self.source.frame_ids[i]), float(self.source.timestamps[i]),
+                             SKIPPED, unreadable=str(error))
+        self._cursor += 1
+        self.records.append(record)
+        timings["read"] = time.perf_counter() - t_start
+        result = self._result(record, SKIPPED, f"bad frame skipped: {error}", timings)
+        self.wall_time += time.perf_counter() - t_start
+        self.cpu_time += time.process_time() - cpu_start
+        self.timings["read"] = self.timings.get("read", 0.0) + timings["read"]
         self.last_result = result
         for cb in self.callbacks:
             cb(self, result)
@@ -299,6 +324,8 @@ class Slam:
         timings["initialize"] = time.perf_counter() - t
         if not res.initialized:
             record.status = INITIALIZING
+            if res.status == "failed":
+                self._init_message = res.reason
             return self._result(record, INITIALIZING, res.reason, timings)
         # a new segment with the two initial keyframes; pose the rest of the window by tracking
         seg = Segment(len(self.segments), res.slam_map,
@@ -606,6 +633,10 @@ class Slam:
             "frames_lost": int(lost),
             "frames_skipped": int(sum(r.status == SKIPPED for r in self.records)),
             "frames_degenerate": int(sum(r.degenerate for r in self.records)),
+            "frames_unreadable": int(sum(bool(r.unreadable) for r in self.records)),
+            "unreadable_frames": [{"frame": r.index, "frame_id": r.frame_id, "error": r.unreadable}
+                                  for r in self.records if r.unreadable],
+            "not_initialized_reason": None if self.segments else self._why_not_initialized(),
             "fraction_posed": posed / n if n else 0.0,
             "keyframes": n_kf,
             "points3D": slam_map.num_points if slam_map else 0,
@@ -643,6 +674,18 @@ class Slam:
         from .session import load_session
 
         return load_session(path, source, config, callbacks, cls=cls)
+
+    def _why_not_initialized(self) -> str:
+        """Why no map exists yet (for the summary): too short a sequence, or the initializer's last reason."""
+        c = self.config.initializer
+        if c.strategy == "best_pair" and len(self.indices) < c.init_frames:
+            return (f"the sequence has {len(self.indices)} frames, fewer than the initialization window "
+                    f"(initializer.init_frames = {c.init_frames}): lower init_frames to at least 2")
+        if self._init_message:
+            return f"no initial pair found; last attempt: {self._init_message}"
+        if not self.records:
+            return "no frame processed yet"
+        return f"no initial pair tried yet ({self.records[-1].status}: {len(self.records)} frames so far)"
 
     def save(self, out_dir: str | Path) -> Path:
         """Write trajectories, COLMAP model, PLY, summary and a session to resume from (:meth:`resume`) to

@@ -63,11 +63,12 @@ class FrameSource:
         i = i % n
         image, path = self._read(i)
         gray, color = to_gray_and_rgb(image)
-        self.camera.check_image(gray.shape, where=str(path) if path is not None else f"{self.name} frame {i}")
+        frame_id = int(self.frame_ids[i])
+        self.camera.check_image(gray.shape, where=f"{path if path is not None else self.name}, frame {frame_id}")
         gt = None
         if self.gt_poses is not None and np.isfinite(self.gt_poses[i]).all():
             gt = self.gt_poses[i].copy()
-        return Frame(index=i, frame_id=int(self.frame_ids[i]), timestamp=float(self.timestamps[i]),
+        return Frame(index=i, frame_id=frame_id, timestamp=float(self.timestamps[i]),
                      gray=gray, color=color, camera=self.camera, gt_pose=gt, path=path)
 
     def __iter__(self) -> Iterator[Frame]:

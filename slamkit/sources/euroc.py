@@ -125,9 +125,12 @@ def read_euroc_sensor(path: str | Path) -> EurocSensor:
         if len(data) != 16:
             raise FormatError(path, _line_of(text, m.start()), f"T_BS data needs 16 numbers, got {len(data)}")
         T_BS = np.asarray(data, dtype=np.float64).reshape(4, 4)
-    numbers = np.concatenate([intr, dist, res, T_BS.ravel()])
-    if not np.isfinite(numbers).all():
-        raise CalibrationError(f"{path}: calibration has non-finite values")
+    for key, values in (("intrinsics", intr), ("distortion_coefficients", dist), ("resolution", res),
+                        ("T_BS", T_BS.ravel())):
+        if not np.isfinite(values).all():
+            m = re.search(rf"^[ \t]*{key}[ \t]*:", text, re.M)
+            where = f"{path}:{_line_of(text, m.start())}" if m else str(path)
+            raise CalibrationError(f"{where}: {key} {[float(v) for v in values]} are not all finite")
     return EurocSensor(tuple(intr), tuple(dist), (int(res[0]), int(res[1])), T_BS, model, dmodel)
 
 
@@ -202,6 +205,7 @@ def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | None
     yaml = cam_dir / "sensor.yaml"
     sensor = read_euroc_sensor(yaml) if yaml.is_file() else None
     w, h = image_size(paths[keep[0]])
+    where = str(paths[keep[0]])
     if camera is None:
         if sensor is None:
             raise CalibrationError(f"{cam_dir} has no sensor.yaml: pass camera=Intrinsics(...)")
@@ -209,7 +213,8 @@ def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | None
             camera = sensor.camera()
         except CalibrationError as e:
             raise CalibrationError(f"{yaml}: {e}") from None
-    cam_intr = resolve_camera(camera, w, h, where=str(paths[keep[0]]))
+        where = f"{yaml} (resolution {sensor.resolution[0]}x{sensor.resolution[1]}) with the image {where}"
+    cam_intr = resolve_camera(camera, w, h, where=where)
     t = t_ns * 1e-9
     gt = None
     gt_file = mav0 / "state_groundtruth_estimate0" / "data.csv"

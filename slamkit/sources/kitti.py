@@ -129,6 +129,8 @@ def open_kitti(path: str | Path, *, sequence: str | int | None = None, camera_in
         raise FormatError(times_file, None, f"has {len(times)} timestamps but {image_dir} has {len(files)} images")
     w, h = image_size(files[0])
     calib_cam = kitti_intrinsics(P, w, h, where=str(calib_file))
+    if camera is None:
+        calib_cam.check_centred(where=f"{calib_file} ({key}) with the images of {image_dir}")
     cam = resolve_camera(calib_cam if camera is None else camera, w, h, where=str(files[0]))
     gt = None
     if poses_file is not None:

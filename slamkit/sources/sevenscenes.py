@@ -75,8 +75,9 @@ def read_sevenscenes_intrinsics(path: str | Path) -> tuple[float, float, float, 
         raise FormatError(path, int(lines[-1]) if len(lines) else None,
                           f"expected a 3x3 matrix or 'fx fy cx cy', got {len(values)} numbers")
     out = (float(fx), float(fy), float(cx), float(cy))
-    if not np.isfinite(out).all():
-        raise CalibrationError(f"{path}: intrinsics {out} are not all finite")
+    for row, line in zip(rows, lines):
+        if not np.isfinite(row).all():
+            raise CalibrationError(f"{path}:{line}: intrinsics {out} are not all finite")
     return out
 
 
@@ -133,14 +134,18 @@ def open_sevenscenes(path: str | Path, *, seq: str | int | None = None, camera: 
     w, h = image_size(paths[0])
     if camera is None:
         fx, fy, cx, cy = SEVENSCENES_NOMINAL
+        origin = f"the nominal 7-Scenes intrinsics {SEVENSCENES_NOMINAL}"
         for candidate in (folder / "camera-intrinsics.txt", folder.parent / "camera-intrinsics.txt"):
             if candidate.is_file():
                 fx, fy, cx, cy = read_sevenscenes_intrinsics(candidate)
+                origin = str(candidate)
                 break
+        where = f"{origin} with the images of {folder}"
         try:
             camera = Intrinsics(w, h, fx, fy, cx, cy)
         except CalibrationError as e:
-            raise CalibrationError(f"{folder}: {e}") from None
+            raise CalibrationError(f"{where}: {e}") from None
+        camera.check_centred(where)
     cam = resolve_camera(camera, w, h, where=str(paths[0]))
     gt = np.full((len(keep), 4, 4), np.nan)
     any_pose = False

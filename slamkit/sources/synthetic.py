@@ -48,7 +48,7 @@ from typing import Callable
 import numpy as np
 
 from ..camera import Intrinsics
-from ..errors import ConfigError, SourceError
+from ..errors import CalibrationError, ConfigError, SourceError
 from ..types import Trajectory
 from .base import FrameSource, ImageListSource, select
 from .scene import ROOM_Y, Rendering, Scene, default_room, look_at
@@ -553,7 +553,12 @@ def open_tum_sequence(folder: str | Path, *, name: str | None = None, frame_skip
     for f in ("rgb.txt", "camera.json"):
         if not (folder / f).is_file():
             raise SourceError(f"{folder / f} does not exist (not a sequence written by write_tum_sequence?)")
-    camera = Intrinsics.from_dict(json.loads((folder / "camera.json").read_text()))
+    try:
+        camera = Intrinsics.from_dict(json.loads((folder / "camera.json").read_text()))
+    except CalibrationError as e:
+        raise CalibrationError(f"{folder / 'camera.json'}: {e}") from None
+    except (ValueError, KeyError, TypeError) as e:
+        raise CalibrationError(f"{folder / 'camera.json'}: not written by Intrinsics.to_dict ({e})") from None
     stamps, names = [], []
     for lineno, line in enumerate((folder / "rgb.txt").read_text().splitlines(), 1):
         if not line.strip() or line.lstrip().startswith("#"):
@@ -576,8 +581,13 @@ def open_tum_sequence(folder: str | Path, *, name: str | None = None, frame_skip
         ok = np.abs(traj.timestamps[pos] - t) < 1e-7 if len(traj) else np.zeros(len(t), bool)
         gt[ok] = traj.poses[pos[ok]]
         gt = gt[keep]
-    return ImageListSource(name=name or folder.name, camera=camera, paths=[folder / names[i] for i in keep],
-                           timestamps=t[keep], frame_ids=keep, gt_poses=gt)
+    paths = [folder / names[i] for i in keep]
+    if paths and paths[0].is_file():  # the intrinsics must fit the images (checked on the first, header only)
+        from .folder import image_size, resolve_camera
+
+        resolve_camera(camera, *image_size(paths[0]), where=f"{folder / 'camera.json'} with the image {paths[0]}")
+    return ImageListSource(name=name or folder.name, camera=camera, paths=paths, timestamps=t[keep], frame_ids=keep,
+                           gt_poses=gt)
 
 
 def open_default(*, frame_skip: int = 1, max_frames: int | None = None) -> ImageListSource:

@@ -57,7 +57,9 @@ class VideoSource(FrameSource):
                 raise ImageReadError(self.path, "frame 0 could not be decoded")
             height, width = image.shape[:2]
             self._rewind(cap)
-        if exact_count or not math.isfinite(count) or count <= 0:
+        self.counted = bool(exact_count or not math.isfinite(count) or count <= 0)
+        """The number of frames was counted by grabbing (else it is the container's claim)."""
+        if self.counted:
             count = self._count_frames(cap)
         self.n_video_frames = int(count)
         if self.n_video_frames == 0:
@@ -143,6 +145,8 @@ class VideoSource(FrameSource):
         return image, self.path
 
     def _pos_msg(self, k: int) -> str:
+        if getattr(self, "counted", False):  # the frame was grabbed while counting: decoding it failed
+            return f"{k} of {self.n_video_frames} (damaged, or the stream changes resolution or codec there)"
         return (f"{k} (the container reports {self.n_video_frames} frames, which can be wrong; "
                 "open with exact_count=True to count them)")
 
