@@ -396,8 +396,8 @@ class Slam:
             self._consecutive_lost += 1
             msg = tr.reason
             if self._consecutive_lost >= self.config.max_lost_frames or len(self.local_map) == 0:
-                self._end_segment()
                 msg += f"; {self._consecutive_lost} frames lost: starting a new map segment"
+                self._end_segment()  # resets the count
             return self._result(record, LOST, msg, timings, matches=0, inliers=tr.num_inliers)
         self._consecutive_lost = 0
         self._last_ids = tr.point3D_ids

@@ -252,7 +252,7 @@ def test_lost_tracking_starts_a_new_segment_and_saves_both(tmp_path):
     slam = Slam(src, SlamConfig(max_lost_frames=5).with_overrides(init_frames=10))
     results = slam.run()
     assert all(r.status in ("lost", "initializing") for r in results[60:72])
-    assert any("new map segment" in r.message for r in results[60:72])
+    assert any("5 frames lost: starting a new map segment" in r.message for r in results[60:72])
     s = slam.summary()
     assert len(s["segments"]) == 2, s["segments"]
     assert s["segments"][0]["last_frame"] < 60 and s["segments"][1]["first_frame"] >= 65
