@@ -25,6 +25,10 @@ class BundleAdjustmentConfig:
     local_window: int = 6
     """Keyframes adjusted with the new one: its most covisible keyframes."""
     local_iterations: int = 20
+    local_max_track_length: int = 12
+    """In local BA, points observed by more keyframes than this are held constant: they are well
+    constrained already, and their observations in every other keyframe would otherwise all enter the
+    problem, so local BA would grow with the map wherever the camera revisits (0: all points variable)."""
     global_growth: float = 0.25
     """Global BA when the number of keyframes has grown by this fraction since the last global BA."""
     global_min_keyframes: int = 8
@@ -54,6 +58,8 @@ class BundleAdjustmentConfig:
     def validate(self) -> None:
         if self.local_window < 1:
             raise ConfigError(f"ba.local_window must be >= 1 (got {self.local_window})")
+        if self.local_max_track_length < 0:
+            raise ConfigError(f"ba.local_max_track_length must be >= 0 (got {self.local_max_track_length})")
         if self.global_growth <= 0:
             raise ConfigError(f"ba.global_growth must be > 0 (got {self.global_growth})")
         if self.max_reproj_error_px <= 0:
@@ -128,8 +134,13 @@ class BundleAdjuster:
             cfg.add_image(i)
         points = np.unique(np.concatenate([slam_map.point3D_ids(i) for i in window]))
         points = points[points >= 0].tolist()
+        max_track = self.config.local_max_track_length
+        point3D = slam_map.reconstruction.point3D
         for p in points:
-            cfg.add_variable_point(p)
+            if max_track > 0 and point3D(p).track.length() > max_track:
+                cfg.add_constant_point(p)
+            else:
+                cfg.add_variable_point(p)
         if not self.config.refine_intrinsics:
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         if len(window) >= slam_map.num_keyframes:  # nothing outside the window holds the gauge
