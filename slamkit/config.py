@@ -29,7 +29,8 @@ class SlamConfig:
     extractor, the matcher and the pipeline's other settings at once."""
     matcher: str = "nn"
     """Pair matcher for initialization and keyframe correspondences (``available_matchers()``); "nn" is
-    nearest-neighbour descriptor matching with each stage's MatchingConfig. The learned matchers accept
+    nearest-neighbour descriptor matching with each stage's MatchingConfig; "mnn" is mutual nearest
+    neighbours by one matrix product with ``mapper.matching``'s thresholds. The learned matchers accept
     only their extractor's descriptors: lighterglue - xfeat, lightglue - aliked, superglue - superpoint."""
     weights_dir: str = ""
     """Folder of weight files for the learned extractors and matchers (CLI ``--weights-dir``); "" = none
@@ -137,7 +138,10 @@ class SlamConfig:
         return opts
 
     def matcher_options(self) -> dict[str, Any]:
-        """Keyword arguments of ``create_matcher(self.matcher, ...)`` (``weights_dir`` for a learned one)."""
+        """Keyword arguments of ``create_matcher(self.matcher, ...)``: ``weights_dir`` for a learned one;
+        for ``mnn`` the thresholds of ``mapper.matching`` (it matches keyframes and initialization pairs)."""
+        if self.matcher == "mnn":
+            return {"config": self.mapper.matching}
         return {"weights_dir": self.weights_dir} if self.weights_dir and self.matcher in LEARNED_MATCHERS else {}
 
     def unavailable_reason(self) -> str | None:
@@ -181,7 +185,8 @@ FEATURE_PIPELINES: dict[str, dict[str, Any]] = {
 }
 """Feature pipelines by name, for ``--features NAME``, ``with_overrides(features=NAME)`` and the notebook
 dropdown: the extractor, the pair matcher and the settings that go with them. ``xfeat``: XFeat + mutual
-nearest neighbours; ``xfeat-lighterglue``: XFeat + LighterGlue; ``aliked-lightglue``: ALIKED-N16 + LightGlue;
+nearest neighbours (``mnn``: the same matches as ``nn`` with a mutual check, from one matrix product);
+``xfeat-lighterglue``: XFeat + LighterGlue; ``aliked-lightglue``: ALIKED-N16 + LightGlue;
 ``superpoint-superglue``: SuperPoint + SuperGlue (indoor), Magic Leap's weights from ``weights_dir``.
 Settings given after the name (``--num-features``, ``--set``) override the pipeline's."""
 

