@@ -10,7 +10,8 @@ frame alone. A pipeline whose extra or weights are missing is listed as unavaila
 Sequences: ``7scenes-redkitchen`` (first ``--frames`` frames, default 300; 640x480) and KITTI odometry 07
 (the 160 shared frames, 1226x370), from ``../shared/data``.
 
-Timing is on one CPU core: torch and OpenCV use one thread and the process is pinned to one core
+Timing is on one CPU core: torch and OpenCV use one thread, bundle adjustment too (``ba.num_threads``
+= ``--cores``; with one thread a run is bit-reproducible) and the process is pinned to one core
 (``--cores``). Seconds are wall clock (``summary()``: they include waiting for the CPU on a shared machine,
 whose load average is recorded with every row) and process CPU seconds (``time.process_time`` around
 ``run()`` and around the extractor's ``extract``), the better measure of "seconds on one core" when other
@@ -59,13 +60,13 @@ class Pipeline:
     overrides: dict
 
 
-PIPELINES = {p.key: p for p in (
+PIPELINES = {p.key: p for p in (  # the names of --features / slamkit.config.FEATURE_PIPELINES
     Pipeline("orb", "ORB+NN", {"features": "orb"}),
     Pipeline("sift", "SIFT", {"features": "sift"}),
     Pipeline("xfeat", "XFeat", {"features": "xfeat"}),
-    Pipeline("xfeat-lighterglue", "XFeat+LighterGlue", {"features": "xfeat", "matcher": "lighterglue"}),
-    Pipeline("aliked-lightglue", "ALIKED+LightGlue", {"features": "aliked", "matcher": "lightglue"}),
-    Pipeline("superpoint-superglue", "SuperPoint+SuperGlue", {"features": "superpoint", "matcher": "superglue"}),
+    Pipeline("xfeat-lighterglue", "XFeat+LighterGlue", {"features": "xfeat-lighterglue"}),
+    Pipeline("aliked-lightglue", "ALIKED+LightGlue", {"features": "aliked-lightglue"}),
+    Pipeline("superpoint-superglue", "SuperPoint+SuperGlue", {"features": "superpoint-superglue"}),
 )}
 
 SEQUENCES = {
@@ -97,21 +98,12 @@ def _has_torch() -> bool:
     return importlib.util.find_spec("torch") is not None
 
 
-def availability(p: Pipeline, weights_dir: Path | None) -> str | None:
-    """None when the pipeline can run, else why not (the ConfigError's message)."""
-    from slamkit.errors import ConfigError
-    from slamkit.features import create_extractor, create_matcher
+def availability(p: Pipeline, extra: dict) -> str | None:
+    """None when the pipeline can run, else why not (torch missing: what to install; a weight file missing:
+    which, and where to put it) — ``SlamConfig.unavailable_reason``, which loads nothing."""
+    from slamkit import SlamConfig
 
-    kw = {"weights_dir": weights_dir} if weights_dir is not None else {}
-    try:
-        feat = p.overrides["features"]
-        if feat not in ("orb", "sift"):
-            create_extractor(feat, num_features=100, **kw)
-        if p.overrides.get("matcher", "nn") != "nn":
-            create_matcher(p.overrides["matcher"], **kw)
-    except ConfigError as e:
-        return str(e)
-    return None
+    return SlamConfig().with_overrides(**p.overrides, **extra).unavailable_reason()
 
 
 class CpuTimed:
@@ -148,12 +140,30 @@ def run_one(source, p: Pipeline, extra: dict) -> dict:
     return {
         "frames": n, "fraction_posed": len(traj) / n if n else 0.0, "keyframes": s["keyframes"],
         "initialization_s": s["initialization_s"], "s_per_frame": s["seconds_per_frame"],
-        "s_per_keyframe": s["seconds_per_keyframe"], "points_per_image": s["points_per_image"],
-        "mean_reproj_px": s["mean_reprojection_error_px"], "ate_rmse_m": ate_rmse,
+        "s_per_keyframe": s["seconds_per_keyframe"] if s["keyframes"] else None,
+        "points_per_image": s["points_per_image"] if s["keyframes"] else None,
+        "mean_reproj_px": s["mean_reprojection_error_px"] if s["keyframes"] else None, "ate_rmse_m": ate_rmse,
         "features_s_per_frame": s["timings_s"].get("features", 0.0) / n if n else 0.0,
         "cpu_s_per_frame": cpu / n if n else 0.0, "features_cpu_s_per_frame": timed.cpu_s / n if n else 0.0,
         "wall_s": wall, "cpu_s": cpu, "summary": s,
     }
+
+
+def code_version() -> str:
+    """The commit of the slamkit that ran (``+dirty`` when its files differ from it; "unknown" outside git)."""
+    import subprocess
+
+    import slamkit
+
+    root = Path(slamkit.__file__).resolve().parents[1]
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
+                             check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "slamkit"], cwd=root, capture_output=True,
+                               text=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return f"unknown ({root})"
+    return rev + ("+dirty" if dirty else "")
 
 
 def fmt(v, nd: int = 3) -> str:
@@ -231,15 +241,17 @@ def main(argv: list[str] | None = None) -> int:
     weights_dir = args.weights_dir
     if weights_dir is None and not os.environ.get("SLAMKIT_WEIGHTS") and DEFAULT_WEIGHTS.is_dir():
         weights_dir = DEFAULT_WEIGHTS
-    if weights_dir is not None:  # Slam creates extractors by name: the folder reaches them through the variable
-        os.environ["SLAMKIT_WEIGHTS"] = str(Path(weights_dir).resolve())
-    extra = {"num_features": args.num_features} if args.num_features else {}
+    extra = {"weights_dir": str(Path(weights_dir).resolve())} if weights_dir is not None else {}
+    if args.cores > 0:
+        extra["ba.num_threads"] = args.cores
+    if args.num_features:
+        extra["num_features"] = args.num_features
     for item in args.set:
         k, _, v = item.partition("=")
         extra[k.strip()] = v.strip()
 
     rows, runs = [], {}
-    reasons = {k: availability(PIPELINES[k], None) for k in args.pipelines}
+    reasons = {k: availability(PIPELINES[k], extra) for k in args.pipelines}
     for seq_name in args.sequences:
         folder, kw = SEQUENCES[seq_name]
         path = DATA / folder
@@ -285,7 +297,8 @@ def main(argv: list[str] | None = None) -> int:
         w.writerow({k: r.get(k) for k in COLUMNS})
     args.out.write_text(buf.getvalue())
     meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "argv": sys.argv[1:], "machine": platform.platform(),
-            "python": platform.python_version(), "cores": args.cores, "load_avg_end": os.getloadavg()}
+            "python": platform.python_version(), "cores": args.cores, "load_avg_end": os.getloadavg(),
+            "code": code_version()}
     try:
         import torch
 

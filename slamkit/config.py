@@ -99,7 +99,8 @@ class SlamConfig:
         cfg = self
         for key, value in values.items():
             if key == "features" and str(value) in FEATURE_PIPELINES:  # extractor + matcher + settings
-                for k, v in FEATURE_PIPELINES[str(value)].items():
+                pipeline = {**_pipeline_defaults(), **FEATURE_PIPELINES[str(value)]}
+                for k, v in pipeline.items():
                     cfg = _set(cfg, ALIASES.get(k, k).split("."), v, f"{key}={value}: {k}")
                 continue
             path = ALIASES.get(key, key).split(".")
@@ -178,17 +179,42 @@ PRESETS: dict[str, dict[str, Any]] = {
     "superpoint-superglue": {"features": "superpoint-superglue"},  # + weights_dir: Magic Leap's weights
 }
 
+XFEAT_TRACKING: dict[str, Any] = {"tracker.matching.max_l2": 0.7, "tracker.matching.ratio": 1.0}
+"""Frame tracking with XFeat's 64-d descriptors: a tighter distance threshold and no ratio test in guided
+matching (the projection radius already limits the candidates). On 7-Scenes redkitchen (600 frames) these
+kept more map points tracked per frame and lowered XFeat's ATE and scale drift; see the "Feature pipelines"
+section of benchmarks/README.md for the runs."""
+
 FEATURE_PIPELINES: dict[str, dict[str, Any]] = {
     "orb": {"features": "orb", "matcher": "nn"},
     "sift": {"features": "sift", "matcher": "nn"},
-    **{name: dict(p) for name, p in LEARNED_PIPELINES.items()},
+    "xfeat": {**LEARNED_PIPELINES["xfeat"], **XFEAT_TRACKING},
+    "xfeat-lighterglue": {**LEARNED_PIPELINES["xfeat-lighterglue"], **XFEAT_TRACKING},
+    "aliked-lightglue": dict(LEARNED_PIPELINES["aliked-lightglue"]),
+    "superpoint-superglue": dict(LEARNED_PIPELINES["superpoint-superglue"]),
 }
 """Feature pipelines by name, for ``--features NAME``, ``with_overrides(features=NAME)`` and the notebook
 dropdown: the extractor, the pair matcher and the settings that go with them. ``xfeat``: XFeat + mutual
 nearest neighbours (``mnn``: the same matches as ``nn`` with a mutual check, from one matrix product);
 ``xfeat-lighterglue``: XFeat + LighterGlue; ``aliked-lightglue``: ALIKED-N16 + LightGlue;
 ``superpoint-superglue``: SuperPoint + SuperGlue (indoor), Magic Leap's weights from ``weights_dir``.
-Settings given after the name (``--num-features``, ``--set``) override the pipeline's."""
+Choosing a pipeline sets every setting any pipeline tunes (the others' to their defaults, so switching from
+``xfeat`` back to ``orb`` leaves no XFeat setting behind); settings given after the name (``--num-features``,
+``--set``) override the pipeline's."""
+
+
+def _pipeline_defaults() -> dict[str, Any]:
+    """The default value of every setting some feature pipeline sets (besides features and matcher)."""
+    default = SlamConfig()
+    out = {}
+    for p in FEATURE_PIPELINES.values():
+        for k in p:
+            if k not in ("features", "matcher") and k not in out:
+                obj = default
+                for part in ALIASES.get(k, k).split("."):
+                    obj = getattr(obj, part)
+                out[k] = obj
+    return out
 
 
 def feature_pipeline_status(weights_dir: str = "") -> dict[str, str | None]:

@@ -76,6 +76,16 @@ def test_every_learned_pipeline_is_a_preset_and_a_feature_name():
     assert set(EXPECTED) == set(FEATURE_PIPELINES)
 
 
+def test_switching_pipelines_leaves_no_tuned_setting_behind():
+    xfeat = SlamConfig().with_overrides(features="xfeat")
+    assert xfeat.tracker.matching != SlamConfig().tracker.matching  # XFeat's tracking thresholds
+    assert xfeat.with_overrides(features="orb") == SlamConfig()
+    assert SlamConfig.preset("xfeat-lighterglue").tracker == xfeat.tracker  # same descriptors, same tracking
+    # a preset's other settings stay
+    accurate = SlamConfig.preset("accurate")
+    assert accurate.with_overrides(features="xfeat").ba == accurate.ba
+
+
 def test_settings_after_the_pipeline_name_win():
     cfg = SlamConfig().with_overrides(features="xfeat", matcher="lighterglue", num_features=777)
     assert (cfg.features, cfg.matcher, cfg.num_features) == ("xfeat", "lighterglue", 777)
