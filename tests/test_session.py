@@ -300,7 +300,20 @@ def test_a_failing_source_or_stage_loses_nothing_before_it(tmp_path, uninterrupt
     assert ate(slam.source.ground_truth(), slam.trajectory()).rmse < ATE_BOUND
 
 
-def test_ctrl_c_during_a_step_waits_for_the_frame_to_finish():
+@pytest.fixture
+def sigint_raises():
+    """Ctrl-C raises KeyboardInterrupt, as in a terminal or a kernel, even when the test run was started in the
+    background by a non-interactive shell (which starts it with SIGINT ignored)."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def _sigint_default() -> None:  # in the child, before exec: Python then installs its KeyboardInterrupt handler
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def test_ctrl_c_during_a_step_waits_for_the_frame_to_finish(sigint_raises):
     def interrupt(times):
         def callback(slam, result):
             if result.frame_index == 2:
@@ -338,7 +351,8 @@ def test_ctrl_c_in_slamkit_run_saves_a_readable_resumable_run(tmp_path, uninterr
     args = ["--init-frames", "10", "--set", "ba.global_min_keyframes=4"]
     proc = subprocess.Popen([sys.executable, "-m", "slamkit.cli", "run", SPEC, "--out", str(out), "-v", "-q", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=Path(__file__).parents[1])
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, cwd=Path(__file__).parents[1],
+                            preexec_fn=_sigint_default)
     try:
         lines = _wait_for_line(proc.stdout, "frame 30 [", timeout=600)
         assert lines and lines[-1].startswith("frame 30 ["), lines[-3:]
