@@ -140,9 +140,12 @@ class BundleAdjuster:
         max_track = self.config.local_max_track_length
         point3D = slam_map.reconstruction.point3D
         for p in points:
-            if max_track > 0 and point3D(p).track.length() > max_track:
-                cfg.add_constant_point(p)
-            else:
+            # A long-track point is left out of the config: COLMAP then keeps the observations in the
+            # window and holds the point constant (its track is not all in the problem). Listing it as a
+            # constant point would also add its observations in every other keyframe, residuals with
+            # nothing variable that Ceres drops, but only after building them (and destroying them after
+            # the solve): on a 3,000-frame revisiting sequence that was most of local BA's time.
+            if max_track <= 0 or point3D(p).track.length() <= max_track:
                 cfg.add_variable_point(p)
         if not self.config.refine_intrinsics:
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
