@@ -142,6 +142,23 @@ class SlamMap:
         self.keyframes.pop(image_id, None)
         self.changed()
 
+    def cull(self, image_id: int) -> None:
+        """Remove a redundant keyframe from the map (keyframe culling): its observations are deleted
+        (points left with fewer than two observations too) and it is no longer registered.
+
+        Not :meth:`deregister`: ``ObservationManager.deregister_frame`` also un-counts the keyframe's
+        correspondences as "visible" in every matched image, and the images observed after this one was
+        registered never counted them (``add_image`` catches up only on triangulated correspondences), so
+        it fails with "Visible correspondences underflow". Those counts only rank next-best views, which
+        slamkit does not use; the triangulation counts that matter are kept exact here."""
+        image = self.reconstruction.image(image_id)
+        for j in list(image.get_observation_point2D_idxs()):
+            if image.point2D(j).has_point3D():  # deleting a two-view point may have taken another one
+                self.observations.delete_observation(image_id, j)
+        self.reconstruction.deregister_frame(image_id)
+        self.keyframes.pop(image_id, None)
+        self.changed()
+
     def add_observations(self, image_id: int, point2D_idxs: np.ndarray, point3D_ids: np.ndarray) -> int:
         """Add tracked 2D-3D observations to existing tracks; returns how many were added."""
         image = self.reconstruction.image(image_id)

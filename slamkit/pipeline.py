@@ -23,7 +23,7 @@ from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
 from .stages.flow import flow_score
 from .stages.initializer import Initializer
-from .stages.keyframes import KeyframeDecision, KeyframeSelector, median_parallax_deg
+from .stages.keyframes import KeyframeDecision, KeyframeSelector, keyframe_redundancy, median_parallax_deg
 from .stages.mapper import Mapper
 from .stages.tracker import LocalMap, Tracker
 from .types import Frame, Trajectory
@@ -116,6 +116,8 @@ class Segment:
     signatures: dict[int, np.ndarray] = field(default_factory=dict)
     """Global image signature of each keyframe (image id), for relocalization."""
     relocalizations: int = 0
+    keyframes_culled: int = 0
+    """Keyframes removed from the map as redundant (``keyframes.cull_redundant``)."""
 
 
 Callback = Callable[["Slam", StepResult], None]
@@ -431,6 +433,12 @@ class Slam:
                 ba_kind = bres.kind
                 if bres.normalization is not None:
                     self._apply_normalization(seg, float(bres.normalization.scale))
+                t = time.perf_counter()
+                culled = self._cull_keyframes(seg, mres.image_id, exclude=(self.last_keyframe,))
+                timings["cull"] = time.perf_counter() - t
+                if culled:
+                    message += f"; culled redundant keyframe{'s' if len(culled) > 1 else ''} " + ", ".join(
+                        map(str, culled))
                 self.last_keyframe = mres.image_id
                 if ff.signature is not None:
                     seg.signatures[mres.image_id] = ff.signature
@@ -446,6 +454,47 @@ class Slam:
                             inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
                             degenerate=decision.degenerate, parallax_deg=parallax,
                             relocalized=relocalized)
+
+    def _cull_keyframes(self, seg: Segment, new_image_id: int, exclude: tuple[int, ...] = ()) -> list[int]:
+        """ORB-SLAM's keyframe culling over the new keyframe's local window (``keyframes.cull_redundant``):
+        remove redundant keyframes from the map; the frames anchored to one (itself included) keep their
+        poses, re-anchored to its most covisible remaining keyframe. Never the new keyframe, ``exclude``,
+        the map's first two keyframes (they hold the gauge), or while the map is young. Returns their ids."""
+        c = self.config.keyframes
+        slam_map = seg.slam_map
+        if c.cull_redundant <= 0 or slam_map.num_keyframes < max(RETRACK_BELOW_KEYFRAMES, 4):
+            return []
+        protected = {new_image_id, *exclude, *sorted(slam_map.keyframes)[:2]}
+        culled = []
+        for iid, _ in slam_map.covisible(new_image_id, self.config.ba.local_window):
+            if iid in protected or keyframe_redundancy(slam_map, iid, c.cull_min_observers) < c.cull_redundant:
+                continue
+            anchor = next((j for j, _ in slam_map.covisible(iid) if j != iid), None)
+            if anchor is None:
+                continue
+            self._reanchor(seg, iid, anchor)
+            slam_map.cull(iid)
+            seg.signatures.pop(iid, None)
+            seg.keyframes_culled += 1
+            culled.append(iid)
+        return culled
+
+    def _reanchor(self, seg: Segment, image_id: int, anchor: int) -> None:
+        """Frames posed relative to keyframe ``image_id`` (and the keyframe's own frame) are posed relative
+        to ``anchor`` instead, with the same absolute poses."""
+        slam_map = seg.slam_map
+        old = np.eye(4)
+        old[:3] = slam_map.cam_from_world(image_id).matrix()
+        new = np.eye(4)
+        new[:3] = slam_map.cam_from_world(anchor).matrix()
+        change = old @ np.linalg.inv(new)  # refcam_old_from_refcam_new
+        for i in seg.frames:
+            rec = self.records[i]
+            if rec.ref_image_id == image_id and rec.rel_pose is not None:
+                rec.rel_pose = rec.rel_pose @ change
+                rec.ref_image_id = anchor
+            if rec.keyframe_image_id == image_id:
+                rec.keyframe_image_id = -1
 
     def _relocalize(self, ff: FrameFeatures):
         """Localize a frame the local map could not track against the keyframes that look most alike
@@ -648,6 +697,7 @@ class Slam:
                          for s in self.segments],
             "main_segment": main.id if main else None,
             "relocalizations": int(sum(s.relocalizations for s in self.segments)),
+            "keyframes_culled": int(sum(s.keyframes_culled for s in self.segments)),
             "cpu_time_s": self.cpu_time,
             "wall_time_s": self.wall_time,
             "fps": n / self.wall_time if self.wall_time > 0 else 0.0,

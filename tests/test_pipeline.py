@@ -299,3 +299,38 @@ def test_relocalization_after_a_jump_back_to_a_mapped_place():
     assert len(slam.segments) == 1 and slam.summary()["relocalizations"] >= 1
     assert sum(r.has_pose for r in after) >= len(after) - 2
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.02
+
+
+def test_keyframe_culling_keeps_every_frame_pose_and_the_map_consistent():
+    """Hand-held motion over one room revisits places: redundant keyframes are culled (ORB-SLAM's 90 % rule)
+    and the frames anchored to them keep their poses exactly."""
+    src = open_source("synthetic:handheld?frames=200")
+    slam = Slam(src, SlamConfig())
+    cull = slam._cull_keyframes
+    pose_changes, culled_ids = [], []
+
+    def checked(seg, new_image_id, exclude=()):
+        before = {r.index: slam.pose_of(r) for r in slam.records if r.rel_pose is not None and r.segment == seg.id}
+        culled = cull(seg, new_image_id, exclude)
+        for k in culled:
+            assert k not in seg.slam_map.keyframes and k not in seg.signatures
+            assert k not in seg.slam_map.reconstruction.reg_image_ids()
+            assert seg.slam_map.reconstruction.image(k).num_points3D == 0
+        culled_ids.extend(culled)
+        if culled:
+            pose_changes.append(max(np.abs(slam.pose_of(slam.records[i]) - p).max() for i, p in before.items()))
+        return culled
+
+    slam._cull_keyframes = checked
+    results = slam.run()
+    slam.finish()
+    s = slam.summary()
+    assert s["keyframes_culled"] == len(culled_ids) >= 1
+    assert max(pose_changes) < 1e-9
+    assert any("culled redundant keyframe" in r.message for r in results)
+    kfs = slam.slam_map.keyframes
+    assert all(r.ref_image_id in kfs for r in slam.records if r.rel_pose is not None)
+    assert {r.keyframe_image_id for r in slam.records if r.keyframe_image_id > 0} == set(kfs)
+    assert sorted(slam.slam_map.reconstruction.reg_image_ids()) == sorted(kfs)
+    assert s["fraction_posed"] >= 0.98
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.01   # metres, over a ~3 m path

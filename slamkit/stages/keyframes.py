@@ -1,5 +1,6 @@
 """Keyframe selection (seed §3.4, with ORB-SLAM's "before tracking becomes weak" rule) and the
-degenerate-motion test (too little parallax to the last keyframe, e.g. pure rotation).
+degenerate-motion test (too little parallax to the last keyframe, e.g. pure rotation), and ORB-SLAM's
+keyframe culling (:func:`keyframe_redundancy`).
 
 A frame whose flow or weak tracking asks for a keyframe is still refused when the median triangulation
 angle of its tracked matches to the last keyframe (:func:`median_parallax_deg`, the relative rotation
@@ -35,6 +36,13 @@ class KeyframeConfig:
     angle, relative rotation removed) of the tracked matches to the last keyframe is below this, degrees;
     0 disables the test. Pure rotation measures ~0.1 (keypoint noise); keyframes of real sequences are
     taken at 0.3-1 when the camera turns (KITTI 07, 7-Scenes), where a higher value loses the map."""
+    cull_redundant: float = 0.9
+    """Keyframe culling (ORB-SLAM): after each new keyframe's bundle adjustment, a keyframe of its local
+    window is removed from the map when at least this fraction of its map points is observed by
+    ``cull_min_observers`` other keyframes; its frames are re-anchored to a neighbour. Where the camera keeps
+    revisiting a place, keyframes and track lengths then stop growing with time (0 disables)."""
+    cull_min_observers: int = 3
+    """See ``cull_redundant``."""
 
     def validate(self) -> None:
         if not self.flow_threshold >= 0:
@@ -45,6 +53,10 @@ class KeyframeConfig:
             raise ConfigError(f"keyframes.weak_tracking_ratio must be in [0, 1) (got {self.weak_tracking_ratio})")
         if not 0 <= self.min_parallax_deg < 45:
             raise ConfigError(f"keyframes.min_parallax_deg must be in [0, 45) degrees (got {self.min_parallax_deg})")
+        if not 0 <= self.cull_redundant <= 1:
+            raise ConfigError(f"keyframes.cull_redundant must be in [0, 1] (got {self.cull_redundant})")
+        if self.cull_min_observers < 1:
+            raise ConfigError(f"keyframes.cull_min_observers must be >= 1 (got {self.cull_min_observers})")
 
 
 @dataclass(frozen=True)
@@ -74,6 +86,17 @@ def median_parallax_deg(ref_xy: np.ndarray, cur_xy: np.ndarray, ref_from_world: 
         return float("nan"), rotation
     angles = parallax_deg(np.asarray(ref_xy, np.float64), np.asarray(cur_xy, np.float64), R, np.asarray(K))
     return float(np.median(angles)), rotation
+
+
+def keyframe_redundancy(slam_map, image_id: int, min_observers: int) -> float:
+    """ORB-SLAM's culling measure: the fraction of the keyframe's map points that ``min_observers`` other
+    keyframes observe too (0 for a keyframe without map points)."""
+    pids = slam_map.point3D_ids(image_id)
+    pids = pids[pids >= 0].tolist()
+    if not pids:
+        return 0.0
+    point3D = slam_map.reconstruction.point3D
+    return sum(point3D(p).track.length() > min_observers for p in pids) / len(pids)
 
 
 class KeyframeSelector:
