@@ -252,6 +252,56 @@ class SlamMap:
         rgb = np.array([pts[int(i)].color for i in ids], dtype=np.uint8).reshape(-1, 3)
         return ids, xyz, rgb
 
+    def num_dropped_images(self) -> int:
+        """Images of the reconstruction that are neither keyframes nor pending: culled or rejected ones."""
+        return self.reconstruction.num_images() - len(self.keyframes) - len(self._pending)
+
+    def compact(self) -> int:
+        """Rebuild the Reconstruction, CorrespondenceGraph and ObservationManager without the images that are
+        no longer keyframes (culled or rejected), so memory follows the map, not the frames; returns how
+        many images were dropped (0 while a keyframe candidate is pending). Image and point ids, poses,
+        tracks, the keyframes' correspondences (in the same order) and the triangulator's modified points
+        are kept; the ObservationManager's statistics are recounted (as after a session is loaded)."""
+        from .session import _max_point3D_id, graph_pairs  # session builds on this module
+
+        old, dropped = self.reconstruction, self.num_dropped_images()
+        if dropped <= 0 or self._pending:  # pending images are between add_image and register: not now
+            return 0
+        keep = sorted(self.keyframes)
+        pairs, matches = graph_pairs(self)
+        modified = sorted(self.triangulator.get_modified_points3D())
+        max_id = _max_point3D_id(old)
+        rec = pycolmap.Reconstruction()
+        rec.add_camera_with_trivial_rig(old.camera(CAMERA_ID))
+        self.reconstruction, self.graph = rec, pycolmap.CorrespondenceGraph()
+        wanted = set(keep)
+        by_newer: dict[int, list[int]] = {}
+        for k, (a, b) in enumerate(pairs):
+            if a in wanted and b in wanted:
+                by_newer.setdefault(b, []).append(k)
+        for iid in keep:
+            image = old.image(iid)
+            xy = np.array([p.xy for p in image.points2D], np.float64).reshape(-1, 2)
+            rec.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=xy, camera_id=CAMERA_ID,
+                                                            image_id=iid))
+            self.graph.add_image(iid, len(xy))
+            for k in by_newer.get(iid, []):
+                self.add_matches(pairs[k][0], pairs[k][1], matches[k])
+        for fid in old.reg_frame_ids():
+            rec.frame(fid).rig_from_world = copy.copy(old.frame(fid).rig_from_world)
+            rec.register_frame(fid)
+        for pid in sorted(old.point3D_ids()):
+            rec.add_point3D_with_id(pid, old.point3D(pid))
+        if max_id > 0 and not rec.exists_point3D(max_id):  # new points get ids after every id ever given
+            rec.add_point3D_with_id(max_id, pycolmap.Point3D())
+            rec.delete_point3D(max_id)
+        self.rewire()
+        for pid in modified:
+            if rec.exists_point3D(pid):
+                self.triangulator.add_modified_point3D(pid)
+        self.changed()
+        return dropped
+
     # ----------------------------------------------------------------- sessions
     def rewire(self) -> None:
         """Recreate the ObservationManager and IncrementalTriangulator around the current reconstruction and

@@ -435,6 +435,9 @@ class Slam:
                     self._apply_normalization(seg, float(bres.normalization.scale))
                 t = time.perf_counter()
                 culled = self._cull_keyframes(seg, mres.image_id, exclude=(self.last_keyframe,))
+                n_drop, every = slam_map.num_dropped_images(), self.config.mapper.compact_dropped
+                if every > 0 and n_drop >= max(every, slam_map.num_keyframes):
+                    slam_map.compact()
                 timings["cull"] = time.perf_counter() - t
                 if culled:
                     message += f"; culled redundant keyframe{'s' if len(culled) > 1 else ''} " + ", ".join(

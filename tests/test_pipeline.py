@@ -322,7 +322,9 @@ def test_keyframe_culling_keeps_every_frame_pose_and_the_map_consistent():
         return culled
 
     slam._cull_keyframes = checked
-    results = slam.run()
+    results = slam.run(max_steps=150)
+    _compact_and_check(slam.slam_map)  # the map without culled images, then the run goes on in it
+    results += slam.run()
     slam.finish()
     s = slam.summary()
     assert s["keyframes_culled"] == len(culled_ids) >= 1
@@ -334,3 +336,27 @@ def test_keyframe_culling_keeps_every_frame_pose_and_the_map_consistent():
     assert sorted(slam.slam_map.reconstruction.reg_image_ids()) == sorted(kfs)
     assert s["fraction_posed"] >= 0.98
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.01   # metres, over a ~3 m path
+
+
+def _compact_and_check(slam_map):
+    """SlamMap.compact drops the images that are no longer keyframes and keeps everything else."""
+    rec = slam_map.reconstruction
+    tracks = {p: sorted((e.image_id, e.point2D_idx) for e in rec.point3D(p).track.elements) for p in rec.point3D_ids()}
+    xyz = {p: rec.point3D(p).xyz.copy() for p in tracks}
+    poses = {i: slam_map.cam_from_world(i).matrix() for i in slam_map.keyframes}
+    kfs = set(slam_map.keyframes)
+    sample = {i: list(range(0, rec.image(i).num_points2D(), 17)) for i in kfs}
+    corr = {i: [sorted((c.image_id, c.point2D_idx) for c in slam_map.graph.extract_correspondences(i, j)
+                       if c.image_id in kfs) for j in js] for i, js in sample.items()}
+    n_images = rec.num_images()
+    assert n_images > len(kfs)                          # culled keyframes are still in pycolmap's model
+    assert slam_map.compact() == n_images - len(kfs)
+    rec = slam_map.reconstruction
+    assert sorted(rec.images) == sorted(kfs) == sorted(rec.reg_image_ids())
+    assert {p: sorted((e.image_id, e.point2D_idx) for e in rec.point3D(p).track.elements)
+            for p in rec.point3D_ids()} == tracks
+    assert all(np.array_equal(rec.point3D(p).xyz, xyz[p]) for p in tracks)
+    assert all(np.array_equal(slam_map.cam_from_world(i).matrix(), poses[i]) for i in kfs)
+    assert {i: [sorted((c.image_id, c.point2D_idx) for c in slam_map.graph.extract_correspondences(i, j))
+                for j in js] for i, js in sample.items()} == corr
+    assert slam_map.compact() == 0

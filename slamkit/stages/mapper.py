@@ -26,8 +26,14 @@ class MapperConfig:
     min_keyframe_points: int = 50
     """A keyframe seeing fewer map points after triangulation is deregistered (seed §3.5)."""
     matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.8, mutual=True))
+    compact_dropped: int = 100
+    """Images no longer keyframes (culled or rejected) stay in pycolmap's Reconstruction and correspondence
+    graph (~0.3 MB each with 2,000 keypoints); once there are this many, and at least as many as keyframes,
+    the map is rebuilt without them (``SlamMap.compact``; amortized O(1) per keyframe). 0: never."""
 
     def validate(self) -> None:
+        if self.compact_dropped < 0:
+            raise ConfigError(f"mapper.compact_dropped must be >= 0 (got {self.compact_dropped})")
         if self.neighbors < 1:
             raise ConfigError(f"mapper.neighbors must be >= 1 (got {self.neighbors})")
         if self.max_epipolar_error_px <= 0:
