@@ -462,12 +462,14 @@ class Slam:
         """ORB-SLAM's keyframe culling over the new keyframe's local window (``keyframes.cull_redundant``):
         remove redundant keyframes from the map; the frames anchored to one (itself included) keep their
         poses, re-anchored to its most covisible remaining keyframe. Never the new keyframe, ``exclude``,
-        the map's first two keyframes (they hold the gauge), or while the map is young. Returns their ids."""
+        the map's first two keyframes (they hold the gauge), the ``keyframes.cull_keep_recent`` newest, or
+        while the map is young. Returns their ids."""
         c = self.config.keyframes
         slam_map = seg.slam_map
         if c.cull_redundant <= 0 or slam_map.num_keyframes < max(RETRACK_BELOW_KEYFRAMES, 4):
             return []
-        protected = {new_image_id, *exclude, *sorted(slam_map.keyframes)[:2]}
+        ids = sorted(slam_map.keyframes)
+        protected = {new_image_id, *exclude, *ids[:2], *ids[len(ids) - c.cull_keep_recent:]}
         culled = []
         for iid, _ in slam_map.covisible(new_image_id, self.config.ba.local_window):
             if iid in protected or keyframe_redundancy(slam_map, iid, c.cull_min_observers) < c.cull_redundant:

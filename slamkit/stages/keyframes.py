@@ -43,6 +43,10 @@ class KeyframeConfig:
     revisiting a place, keyframes and track lengths then stop growing with time (0 disables)."""
     cull_min_observers: int = 3
     """See ``cull_redundant``."""
+    cull_keep_recent: int = 5
+    """The most recent keyframes are never culled: new keyframes triangulate with them (``mapper.neighbors``),
+    and in a turn, where each keyframe adds few points, culling them starved the map until tracking was lost
+    (KITTI 07, seed 1: 55 % posed without this, 100 % with it)."""
 
     def validate(self) -> None:
         if not self.flow_threshold >= 0:
@@ -55,6 +59,8 @@ class KeyframeConfig:
             raise ConfigError(f"keyframes.min_parallax_deg must be in [0, 45) degrees (got {self.min_parallax_deg})")
         if not 0 <= self.cull_redundant <= 1:
             raise ConfigError(f"keyframes.cull_redundant must be in [0, 1] (got {self.cull_redundant})")
+        if self.cull_keep_recent < 0:
+            raise ConfigError(f"keyframes.cull_keep_recent must be >= 0 (got {self.cull_keep_recent})")
         if self.cull_min_observers < 1:
             raise ConfigError(f"keyframes.cull_min_observers must be >= 1 (got {self.cull_min_observers})")
 
