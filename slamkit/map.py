@@ -267,40 +267,49 @@ class SlamMap:
         old, dropped = self.reconstruction, self.num_dropped_images()
         if dropped <= 0 or self._pending:  # pending images are between add_image and register: not now
             return 0
-        keep = sorted(self.keyframes)
         pairs, matches = graph_pairs(self)
         modified = sorted(self.triangulator.get_modified_points3D())
         max_id = _max_point3D_id(old)
-        rec = pycolmap.Reconstruction()
-        rec.add_camera_with_trivial_rig(old.camera(CAMERA_ID))
-        self.reconstruction, self.graph = rec, pycolmap.CorrespondenceGraph()
-        wanted = set(keep)
+        self.reconstruction = pycolmap.Reconstruction()
+        self.reconstruction.add_camera_with_trivial_rig(old.camera(CAMERA_ID))
+        self.graph = pycolmap.CorrespondenceGraph()
+        self.refill(old, sorted(self.keyframes), pairs, matches, list(old.reg_frame_ids()), max_id, modified)
+        return dropped
+
+    def refill(self, source: pycolmap.Reconstruction, image_ids, pairs, matches, registration_order,
+               max_point3D_id: int, modified_points3D) -> None:
+        """Fill this map's empty Reconstruction and graph from ``source``: the images ``image_ids`` (ascending)
+        with their keypoints, the graph ``pairs`` (older, newer) with their ``matches`` replayed in order
+        (pairs with another image are skipped), the frames of ``registration_order`` registered with their
+        poses, every 3D point with its id; new points get ids above ``max_point3D_id``. Then the
+        ObservationManager and triangulator are rewired, with ``modified_points3D`` still to be maintained.
+        Used by :meth:`compact` and when a session is loaded."""
+        rec, wanted = self.reconstruction, set(image_ids)
         by_newer: dict[int, list[int]] = {}
         for k, (a, b) in enumerate(pairs):
             if a in wanted and b in wanted:
-                by_newer.setdefault(b, []).append(k)
-        for iid in keep:
-            image = old.image(iid)
+                by_newer.setdefault(int(b), []).append(k)
+        for iid in image_ids:
+            image = source.image(iid)
             xy = np.array([p.xy for p in image.points2D], np.float64).reshape(-1, 2)
             rec.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=xy, camera_id=CAMERA_ID,
                                                             image_id=iid))
             self.graph.add_image(iid, len(xy))
             for k in by_newer.get(iid, []):
-                self.add_matches(pairs[k][0], pairs[k][1], matches[k])
-        for fid in old.reg_frame_ids():
-            rec.frame(fid).rig_from_world = copy.copy(old.frame(fid).rig_from_world)
+                self.add_matches(int(pairs[k][0]), int(pairs[k][1]), matches[k])
+        for fid in registration_order:
+            rec.frame(fid).rig_from_world = copy.copy(source.frame(fid).rig_from_world)
             rec.register_frame(fid)
-        for pid in sorted(old.point3D_ids()):
-            rec.add_point3D_with_id(pid, old.point3D(pid))
-        if max_id > 0 and not rec.exists_point3D(max_id):  # new points get ids after every id ever given
-            rec.add_point3D_with_id(max_id, pycolmap.Point3D())
-            rec.delete_point3D(max_id)
+        for pid in sorted(source.point3D_ids()):
+            rec.add_point3D_with_id(pid, source.point3D(pid))
+        if max_point3D_id > 0 and not rec.exists_point3D(max_point3D_id):  # ids after every id ever given
+            rec.add_point3D_with_id(max_point3D_id, pycolmap.Point3D())
+            rec.delete_point3D(max_point3D_id)
         self.rewire()
-        for pid in modified:
+        for pid in modified_points3D:  # tracks bundle adjustment will complete and merge next
             if rec.exists_point3D(pid):
                 self.triangulator.add_modified_point3D(pid)
         self.changed()
-        return dropped
 
     # ----------------------------------------------------------------- sessions
     def rewire(self) -> None:

@@ -384,33 +384,9 @@ def _restore_map(camera: Intrinsics, meta: dict, arrays: dict, folder: Path) -> 
     tri = pycolmap.IncrementalTriangulatorOptions()
     tri.mergedict(meta["triangulation"])
     slam_map = SlamMap(Intrinsics.from_dict(meta["camera"]), tri)
-    rec, graph = slam_map.reconstruction, slam_map.graph
-    rec.camera(CAMERA_ID).params = saved.camera(CAMERA_ID).params  # refined intrinsics, if any
-    pairs = arrays["graph_pairs"]
-    matches = _get_list(arrays, "graph_matches")
-    by_newer: dict[int, list[int]] = {}
-    for k, (_, b) in enumerate(pairs.tolist()):
-        by_newer.setdefault(b, []).append(k)
-    for iid in sorted(saved.images):
-        image = saved.image(iid)
-        xy = np.array([p.xy for p in image.points2D], np.float64).reshape(-1, 2)
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=xy, camera_id=CAMERA_ID,
-                                                        image_id=iid))
-        graph.add_image(iid, len(xy))
-        for k in by_newer.get(iid, []):
-            slam_map.add_matches(int(pairs[k, 0]), int(pairs[k, 1]), matches[k])
-    for fid in meta["registration_order"]:
-        rec.frame(fid).rig_from_world = copy.copy(saved.frame(fid).rig_from_world)
-        rec.register_frame(fid)
-    for pid in sorted(saved.points3D):
-        rec.add_point3D_with_id(pid, saved.points3D[pid])
-    max_id = int(meta["max_point3D_id"])
-    if max_id > 0 and not rec.exists_point3D(max_id):  # the next new point gets max_id + 1, as before
-        rec.add_point3D_with_id(max_id, pycolmap.Point3D())
-        rec.delete_point3D(max_id)
-    slam_map.rewire()
-    for pid in meta["modified_points3D"]:  # tracks bundle adjustment will complete and merge next
-        slam_map.triangulator.add_modified_point3D(pid)
+    slam_map.reconstruction.camera(CAMERA_ID).params = saved.camera(CAMERA_ID).params  # refined, if any
+    slam_map.refill(saved, sorted(saved.images), arrays["graph_pairs"].tolist(), _get_list(arrays, "graph_matches"),
+                    meta["registration_order"], int(meta["max_point3D_id"]), meta["modified_points3D"])
     feats = _features_from(meta["keyframe_features"], "kf", arrays)
     for kmeta, (features, keypoints, colors, thumbnail, _) in zip(meta["keyframes"], feats):
         kf = Keyframe(int(kmeta["image_id"]), int(kmeta["frame_index"]), float(kmeta["timestamp"]), keypoints,
