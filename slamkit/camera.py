@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .errors import CalibrationError
+from .errors import CalibrationError, ConfigError
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,22 @@ class Intrinsics:
         (a ~45 degree horizontal field of view, COLMAP's default prior)."""
         f = 1.2 * max(width, height) if focal is None else float(focal)
         return cls(int(width), int(height), f, f, width / 2.0, height / 2.0)
+
+    @classmethod
+    def parse(cls, text: str, width: int, height: int, where: str = "camera") -> "Intrinsics":
+        """Intrinsics of ``width`` x ``height`` images from a short text, as given on a command line:
+        ``F`` (focal length in pixels, principal point at the centre), ``FX,FY,CX,CY``, or those followed by
+        OpenCV's distortion ``K1,K2,P1,P2[,K3]``. Commas or spaces separate the numbers. A malformed text
+        raises :class:`~slamkit.errors.ConfigError` naming ``where``; values that cannot be a camera of that
+        size raise :class:`CalibrationError`."""
+        values = parse_camera_values(text, where)
+        if len(values) == 1:
+            return cls.from_focal(width, height, values[0])
+        dist = tuple(values[4:]) + (0.0,) * (9 - len(values))
+        try:
+            return cls(int(width), int(height), *values[:4], dist=dist)
+        except CalibrationError as e:
+            raise CalibrationError(f"{where}={text!r}: {e}") from None
 
     @property
     def K(self) -> np.ndarray:
@@ -121,3 +137,22 @@ class Intrinsics:
     def from_dict(cls, d: dict) -> "Intrinsics":
         return cls(int(d["width"]), int(d["height"]), float(d["fx"]), float(d["fy"]), float(d["cx"]),
                    float(d["cy"]), tuple(float(x) for x in d.get("dist", (0, 0, 0, 0, 0))))
+
+
+def parse_camera_values(text: str, where: str = "camera") -> list[float]:
+    """The numbers of a camera text (see :meth:`Intrinsics.parse`): 1, 4, 8 or 9 finite floats, the focal
+    lengths positive; :class:`~slamkit.errors.ConfigError` naming ``where`` otherwise."""
+    fields = str(text).translate(str.maketrans(",()[]", "     ")).split()
+    usage = (f"{where}: expected F (focal length, pixels), FX,FY,CX,CY, or FX,FY,CX,CY,K1,K2,P1,P2[,K3] "
+             f"(OpenCV distortion), got {text!r}")
+    if len(fields) not in (1, 4, 8, 9):
+        raise ConfigError(f"{usage}: {len(fields)} numbers")
+    try:
+        values = [float(f) for f in fields]
+    except ValueError:
+        raise ConfigError(f"{usage}: not a number") from None
+    if not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"{usage}: not finite")
+    if values[0] <= 0 or (len(values) > 1 and values[1] <= 0):
+        raise ConfigError(f"{usage}: focal lengths must be positive")
+    return values

@@ -24,6 +24,10 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--min-tracked-matches", type=int, help="keyframe needs this many tracked matches (50)")
     g.add_argument("--init-frames", type=int, help="initialization window N (20)")
     g.add_argument("--init-strategy", choices=["best_pair", "first_inliers"])
+    g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
+                   help="intrinsics in pixels instead of the source's: a focal length (principal point at the "
+                        "centre) or fx,fy,cx,cy with optional OpenCV distortion; for videos and image folders, "
+                        "whose intrinsics are otherwise a guess (focal 1.2 x width)")
     g.add_argument("--frame-skip", type=int, help="use every n-th frame")
     g.add_argument("--max-frames", type=int, help="stop after this many frames")
     g.add_argument("--seed", type=int)
@@ -41,7 +45,7 @@ def _overrides_from_args(args: argparse.Namespace) -> dict:
     """The configuration values given explicitly on the command line (options and --set), preset excluded."""
     over = {k: getattr(args, k) for k in ("features", "matcher", "weights_dir", "num_features", "flow_threshold",
                                           "min_tracked_matches",
-                                          "init_frames", "init_strategy", "frame_skip", "max_frames", "seed")
+                                          "init_frames", "init_strategy", "camera", "frame_skip", "max_frames", "seed")
             if getattr(args, k) is not None}
     for item in args.set:
         if "=" not in item:
@@ -84,7 +88,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"slamkit: resuming the session in {session} after frame {len(slam.records)}", file=sys.stderr)
     if slam is None:
         slam = Slam(args.source, config_from_args(args))
-    print(f"slamkit: {slam.source!r}, {len(slam) - len(slam.records)} frames to process -> {out}", file=sys.stderr)
+    cam = slam.camera
+    print(f"slamkit: {slam.source!r}, {len(slam) - len(slam.records)} frames to process -> {out}; camera fx={cam.fx:g} "
+          f"fy={cam.fy:g} cx={cam.cx:g} cy={cam.cy:g}{' (--camera)' if slam.config.camera else ''}", file=sys.stderr)
     bar = tqdm(total=len(slam), initial=len(slam.records), unit="frame", disable=args.quiet, dynamic_ncols=True)
     code, stopped = 0, ""
     try:

@@ -6,6 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from .camera import parse_camera_values
 from .errors import ConfigError
 from .features import MatchingConfig, available_extractors, available_matchers
 from .features.learned import EXTRACTORS as LEARNED_EXTRACTORS, MATCHER_FEATURES, MATCHERS as LEARNED_MATCHERS
@@ -38,6 +39,12 @@ class SlamConfig:
     too (see :mod:`slamkit.features.learned.weights` for the file names and their licences)."""
     num_features: int = 2000
     """Keypoints per frame the extractor aims for."""
+    camera: str = ""
+    """Intrinsics to use instead of the source's: ``"F"`` (focal length in pixels, principal point at the
+    centre), ``"FX,FY,CX,CY"``, or those followed by OpenCV distortion ``K1,K2,P1,P2[,K3]`` (CLI
+    ``--camera``). For videos and image folders without calibration, whose intrinsics are otherwise a guess
+    (focal 1.2 x the image width: often far off, and then initialization finds too little parallax).
+    "" = the source's own."""
     frame_skip: int = 1
     """Use every n-th frame of the source."""
     max_frames: int | None = None
@@ -76,6 +83,8 @@ class SlamConfig:
             raise ConfigError(f"frame_skip must be >= 1 (got {self.frame_skip})")
         if self.max_frames is not None and self.max_frames < 1:
             raise ConfigError(f"max_frames must be >= 1 or None (got {self.max_frames})")
+        if self.camera:
+            parse_camera_values(self.camera, "camera")
         if self.max_lost_frames < 1:
             raise ConfigError(f"max_lost_frames must be >= 1 (got {self.max_lost_frames})")
         for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.ba):

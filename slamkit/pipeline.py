@@ -15,6 +15,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from .camera import Intrinsics
 from .config import SlamConfig
 from .errors import CalibrationError, ConfigError, ImageReadError
 from .features import FrameFeatures, create_extractor, create_matcher, image_signature
@@ -155,6 +156,8 @@ class Slam:
             self.config = config.validate()
         c = self.config
         self.camera = self.source.camera
+        if c.camera:  # the user's intrinsics instead of the source's (or its guess)
+            self.camera = Intrinsics.parse(c.camera, self.camera.width, self.camera.height)
         self.extractor = create_extractor(c.features, **c.extractor_options())
         matcher = None if c.matcher == "nn" else create_matcher(c.matcher, **c.matcher_options())  # "nn": per stage
         self.tracker = Tracker(_seeded(c.tracker, c.seed))

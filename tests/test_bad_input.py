@@ -116,6 +116,35 @@ def test_intrinsics_that_do_not_fit_the_images_name_the_calibration(tmp_path):
 
 
 # ----------------------------------------------------------------------------- no motion at all
+@pytest.mark.parametrize("text", ["500", "500,500,320,240", "500 500 320 240 0 0 0 0", "(500, 500, 320, 240, 0, 0, 0, 0, 0)"])
+def test_camera_given_for_an_uncalibrated_folder_replaces_the_guess(handheld_folder, text):
+    """A plain image folder has guessed intrinsics (focal 1.2 x 640 = 768 px); SlamConfig.camera (CLI
+    --camera) gives the true ones (the synthetic camera: 500 px, centred), used by the map and saved."""
+    src = open_source(handheld_folder / "rgb", max_frames=30)
+    assert src.camera.fx == pytest.approx(768.0)
+    slam = Slam(src, SlamConfig(camera=text).with_overrides(**INIT))
+    assert (slam.camera.fx, slam.camera.fy, slam.camera.cx, slam.camera.cy) == (500, 500, 320, 240)
+    slam.run()
+    slam.finish()
+    gt = synthetic_source("handheld", frames=30).ground_truth()
+    traj = slam.trajectory()
+    assert len(traj) == 30
+    assert ate(gt, traj).rmse < 0.01
+    assert list(slam.slam_map.reconstruction.camera(1).params) == [500, 500, 320, 240]
+
+
+@pytest.mark.parametrize("text, error, match", [
+    ("500,500", ConfigError, r"camera: expected F .* got '500,500': 2 numbers"),
+    ("f=500", ConfigError, r"camera: .*not a number"),
+    ("-500", ConfigError, r"camera: .*focal lengths must be positive"),
+    ("500,500,nan,240", ConfigError, r"camera: .*not finite"),
+    ("500,500,900,240", CalibrationError, r"camera='500,500,900,240': .*principal point \(900\.0, 240\.0\) lies outside the 640x480"),
+])
+def test_bad_camera_text_names_the_parameter(handheld_folder, text, error, match):
+    with pytest.raises(error, match=match):
+        Slam(open_source(handheld_folder / "rgb"), SlamConfig(camera=text).validate())
+
+
 def test_all_frames_identical_never_initializes_and_says_why(tmp_path):
     pose = synthetic_source("sideways", frames=2).gt_poses[0]
     src = SyntheticSource(default_room(), np.repeat(pose[None], 24, axis=0), noise=1.0, name="still")
