@@ -332,9 +332,9 @@ class Slam:
             if res.status == "failed":
                 self._init_message = res.reason
             return self._result(record, INITIALIZING, res.reason, timings)
-        # a new segment with the two initial keyframes; pose the rest of the window by tracking
+        # a new segment with the two initial keyframes; the rest of the window is tracked below
         seg = Segment(len(self.segments), res.slam_map,
-                      initial_frames=[f for f in res.frames if f.index not in (res.first, res.second)])
+                      initial_frames=[f for f in res.frames if f.index < res.second and f.index != res.first])
         self.segments.append(seg)
         self.segment = seg
         by_index = {f.index: f for f in res.frames}
@@ -347,24 +347,26 @@ class Slam:
         self.last_keyframe = max(res.slam_map.keyframes)
         self._points_at_last_keyframe = res.slam_map.reconstruction.image(self.last_keyframe).num_points3D
         self.local_map = LocalMap.build(res.slam_map, self.last_keyframe, self.config.tracker.local_keyframes)
-        t = time.perf_counter()
-        posed = self._track_window(res)
-        timings["track"] = time.perf_counter() - t
-        record.status = record.status if record.rel_pose is not None else LOST
         self._consecutive_lost = 0
-        return self._result(record, INITIALIZED, res.reason, timings, posed_frames=tuple(sorted(posed)),
+        posed, message = self._track_window(res, timings)
+        record.status = record.status if record.rel_pose is not None else LOST
+        return self._result(record, INITIALIZED, res.reason + message, timings, posed_frames=tuple(sorted(posed)),
                             is_keyframe=record.keyframe_image_id > 0)
 
-    def _track_window(self, res) -> list[int]:
-        """Pose the kept frames around the initial pair: forward from the second keyframe, then backward
-        from the first, each predicted by its already-posed neighbour."""
+    def _track_window(self, res, timings: dict) -> tuple[list[int], str]:
+        """The rest of the initialization window. Frames between the initial pair, then those before it, are
+        posed against the two-keyframe map (each predicted by its already-posed neighbour). Frames after
+        the pair go through tracking as if they came now, keyframes and mapping included: the map grows up
+        to the current frame (with fast motion a map of the pair alone may no longer be in view). Returns
+        the posed frames and a note for the result's message ("" or why the new map was lost again)."""
+        t = time.perf_counter()
         frames = sorted(res.frames, key=lambda f: f.index)
         camera = res.slam_map.pycolmap_camera
         posed = [res.first, res.second]
-        forward = [f for f in frames if f.index > res.first and f.index != res.second]
-        backward = [f for f in reversed(frames) if f.index < res.first]
-        for seq, anchor in ((forward, res.first), (backward, res.first)):
-            neighbour = self.pose_of(self.records[anchor])
+        between = [f for f in frames if res.first < f.index < res.second]
+        before = [f for f in reversed(frames) if f.index < res.first]
+        for seq in (between, before):
+            neighbour = self.pose_of(self.records[res.first])
             for f in seq:
                 tr = self.tracker.step(f, self.local_map, camera, neighbour)
                 rec = self.records[f.index]
@@ -375,7 +377,19 @@ class Slam:
                 else:
                     rec.status = LOST
         self.segment.frames.sort()
-        return posed
+        timings["track"] = timings.get("track", 0.0) + time.perf_counter() - t
+        seg = self.segment
+        for f in (f for f in frames if f.index > res.second):
+            step_timings: dict = {}
+            result = self._track(f, self.records[f.index], step_timings)
+            for k, v in step_timings.items():
+                timings[k] = timings.get(k, 0.0) + v
+            if result.has_pose:
+                posed.append(f.index)
+            if self.segment is not seg:  # lost again at once: the next frame starts a new window
+                return posed, f"; frame {f.index}: {result.message}"
+        seg.frames.sort()
+        return posed, ""
 
     # ----------------------------------------------------------------- tracking
     def _track(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
@@ -386,7 +400,8 @@ class Slam:
             record.status = SKIPPED
             timings["track"] = time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
-        tr = self.tracker.step(ff, self.local_map, slam_map.pycolmap_camera, self._predict(), self._last_ids)
+        tr = self.tracker.step(ff, self.local_map, slam_map.pycolmap_camera, self._predict(record.index),
+                               self._last_ids)
         relocalized = False
         if not tr.tracked and self.config.relocalization_candidates > 0:
             t_reloc = time.perf_counter()
@@ -525,17 +540,18 @@ class Slam:
                 return tr
         return None
 
-    def _predict(self) -> np.ndarray | None:
-        """Constant-velocity prediction from the last two posed frames of the current segment."""
+    def _predict(self, index: int) -> np.ndarray | None:
+        """Constant-velocity prediction for frame ``index`` from the two posed frames of the current segment
+        before it."""
         posed = []
-        for rec in reversed(self.records[:-1]):
+        for rec in reversed(self.records[:index]):
             if rec.status == LOST and rec.segment != self.segment.id:
                 break
             if rec.rel_pose is not None and rec.segment == self.segment.id:
                 posed.append(rec)
                 if len(posed) == 2:
                     break
-            if len(self.records) - rec.index > 5:
+            if index - rec.index > 5:
                 break
         if not posed:
             return None

@@ -263,6 +263,22 @@ def test_lost_tracking_starts_a_new_segment_and_saves_both(tmp_path):
         assert ate(src.source.ground_truth(), slam.trajectory(segment=seg.id)).rmse < 0.02
 
 
+def test_frames_after_the_initial_pair_are_tracked_and_mapped_in_the_window():
+    """A fast orbit initializes on frames 0 and 9 of a 20-frame window; frames 10-19 then go through
+    tracking with keyframes and mapping, so the map reaches the current frame (not only the pair's view)."""
+    src = open_source("synthetic:orbit?frames=80&speed=0.04")
+    slam = Slam(src, SlamConfig())
+    results = slam.run()
+    init = next(r for r in results if r.status == "initialized")
+    assert init.frame_index == 19 and "frames 0 and 9" in init.message
+    assert init.num_keyframes >= 3  # keyframes inserted while tracking frames 10-19
+    assert set(init.posed_frames) == set(range(20))
+    gt = src.ground_truth()
+    traj = slam.trajectory()
+    assert len(traj) == len(src)
+    assert ate(gt, traj).rmse < 0.005
+
+
 class _Jump:
     """Plays the frames of ``source`` in the order ``order`` (a sudden jump of the camera)."""
 
