@@ -4,7 +4,9 @@ TrackWithMotionModel / TrackReferenceKeyFrame / TrackLocalMap, on pycolmap's est
 1. With a predicted pose (constant-velocity model): project the local map points and match each to
    keypoints within ``search_radius_px`` (SearchByProjection); else brute-force match the frame against
    the local map descriptors.
-2. Robust absolute pose: ``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P + refinement).
+2. Absolute pose: with the motion model, its prediction refined on all matches (robust loss) when most of
+   them are then inliers (ORB-SLAM's TrackWithMotionModel, no RANSAC); else
+   ``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P + refinement).
 3. Track the local map: project again with the estimated pose, match within ``refine_radius_px`` and
    refine the pose on all inliers (``pycolmap.refine_absolute_pose``, motion-only bundle adjustment).
 """
@@ -28,9 +30,18 @@ class TrackerConfig:
     min_inliers: int = 30
     """Fewer pose inliers than this and the frame is lost."""
     search_radius_px: float = 20.0
-    """Guided-matching radius around map points projected with the predicted pose, pixels."""
+    """Guided-matching radius around map points projected with the predicted pose, pixels, when the narrow
+    one finds fewer than 2 x ``min_inliers`` matches (ORB-SLAM widens its search the same way)."""
+    narrow_search_radius_px: float = 10.0
+    """Guided-matching radius tried first with the predicted pose, pixels (a fourth of the candidates)."""
     refine_radius_px: float = 6.0
     """Guided-matching radius with the estimated pose (tracking the local map), pixels."""
+    prediction_min_inlier_ratio: float = 0.8
+    """Pose from the motion model without RANSAC when, refined on all motion-model matches, it has this
+    fraction of them as inliers (ORB-SLAM's TrackWithMotionModel); else RANSAC. > 1: always RANSAC."""
+    local_map_rounds: int = 3
+    """Rounds of guided search + pose refinement against the local map; another round only when the
+    refinement moved the points' projections by more than a fourth of ``refine_radius_px`` (median)."""
     local_keyframes: int = 20
     """The local map: points of the last keyframe and of up to this many most covisible keyframes."""
     matching: MatchingConfig = field(default_factory=MatchingConfig)
@@ -42,8 +53,14 @@ class TrackerConfig:
             raise ConfigError(f"tracker.max_error_px must be > 0 (got {self.max_error_px})")
         if self.min_inliers < 4:
             raise ConfigError(f"tracker.min_inliers must be >= 4 (got {self.min_inliers})")
-        if self.search_radius_px <= 0 or self.refine_radius_px <= 0:
-            raise ConfigError("tracker.search_radius_px and tracker.refine_radius_px must be > 0")
+        if min(self.search_radius_px, self.narrow_search_radius_px, self.refine_radius_px) <= 0:
+            raise ConfigError("tracker.search_radius_px, tracker.narrow_search_radius_px and "
+                              "tracker.refine_radius_px must be > 0")
+        if self.local_map_rounds < 1:
+            raise ConfigError(f"tracker.local_map_rounds must be >= 1 (got {self.local_map_rounds})")
+        if self.prediction_min_inlier_ratio <= 0:
+            raise ConfigError(f"tracker.prediction_min_inlier_ratio must be > 0 (got {self.prediction_min_inlier_ratio}; "
+                              "> 1 turns the motion-model pose off)")
 
 
 @dataclass(eq=False)
@@ -105,7 +122,10 @@ class LocalMap:
 class TrackingResult:
     """Outcome of tracking one frame.
 
-    status: "tracked" or "lost"; cam_from_world: (4, 4) pose or None; point2D_idxs / point3D_ids: (K,)
+    status: "tracked" or "lost"; cam_from_world: (4, 4) pose or None; method: how the first pose came:
+    "motion" (the motion model's prediction refined, no RANSAC), "motion+ransac" (RANSAC on the
+    motion-model matches) or "local map" (RANSAC on descriptor matches to the whole local map), "none"
+    when nothing was tried; point2D_idxs / point3D_ids: (K,)
     inlier correspondences; ref_matches: inliers whose point the last keyframe observes, with
     ``ref_xy`` / ``cur_xy`` their pixels in both (for the flow score).
     """
@@ -128,6 +148,11 @@ class TrackingResult:
     @property
     def ref_matches(self) -> int:
         return len(self.ref_xy)
+
+
+def _project(cam_from_world: np.ndarray, xyz: np.ndarray, K: np.ndarray) -> np.ndarray:
+    Xc = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    return Xc[:, :2] / np.maximum(Xc[:, 2:], 1e-9) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
 
 
 def _lost(reason: str, method: str, num_matches: int = 0, num_inliers: int = 0) -> TrackingResult:
@@ -177,10 +202,17 @@ class Tracker:
                 if keep.sum() >= 2 * c.min_inliers:
                     idx, uv = idx[keep], uv[keep]
             pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
-                                 c.search_radius_px, c.matching)
+                                 c.narrow_search_radius_px, c.matching)
+            if len(pairs) < 2 * c.min_inliers and c.search_radius_px > c.narrow_search_radius_px:
+                pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                                     c.search_radius_px, c.matching)
             num_matches = len(pairs)
             if num_matches >= c.min_inliers:
-                initial = self._ransac(frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]], camera)
+                xy, xyz = frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]]
+                initial = self._from_prediction(predicted, xy, xyz, camera, K)
+                if initial is None:
+                    method = "motion+ransac"
+                    initial = self._ransac(xy, xyz, camera)
         if initial is None:
             method = "local map"
             pairs = match_descriptors(local_map.descriptors, desc, local_map.binary, c.matching)
@@ -190,19 +222,32 @@ class Tracker:
             initial = self._ransac(frame.keypoints[pairs[:, 1]], local_map.xyz[pairs[:, 0]], camera)
             if initial is None:
                 return _lost(f"no pose from {len(pairs)} matches to the local map", method, num_matches)
-        # track the local map: guided search with the estimated pose, then motion-only refinement
-        idx, uv = local_map.project(initial, K, size)
-        pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
-                             c.refine_radius_px, c.matching)
-        xy = frame.keypoints[pairs[:, 1]]
-        xyz = local_map.xyz[idx[pairs[:, 0]]]
-        pose = initial
-        inl = self._inliers(pose, xy, xyz, K)
-        if inl.sum() >= c.min_inliers:
-            ref = pycolmap.refine_absolute_pose(rigid_from_matrix(pose), xy, xyz, inl, camera, self._refinement)
-            if ref is not None:
-                pose = matrix_from_rigid(ref["cam_from_world"])
-                inl = self._inliers(pose, xy, xyz, K)
+        # track the local map: guided search with the estimated pose, then motion-only refinement; again
+        # while that adds inliers (a pose from few matches can sit in a rotation-translation ambiguity whose
+        # small search radius hides the points that would pull it out)
+        pose, best = initial, None
+        for _ in range(c.local_map_rounds):
+            idx, uv = local_map.project(pose, K, size)
+            pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                                 c.refine_radius_px, c.matching)
+            xy = frame.keypoints[pairs[:, 1]]
+            xyz = local_map.xyz[idx[pairs[:, 0]]]
+            inl = self._inliers(pose, xy, xyz, K)
+            moved = 0.0
+            if inl.sum() >= c.min_inliers:
+                ref = pycolmap.refine_absolute_pose(rigid_from_matrix(pose), xy, xyz, inl, camera, self._refinement)
+                if ref is not None:
+                    refined = matrix_from_rigid(ref["cam_from_world"])
+                    moved = float(np.median(np.linalg.norm(_project(refined, xyz[inl], K) - _project(pose, xyz[inl], K),
+                                                           axis=1)))
+                    pose = refined
+                    inl = self._inliers(pose, xy, xyz, K)
+            if best is not None and inl.sum() < best[4].sum():
+                pose, idx, pairs, xy, inl = best
+                break
+            best = (pose, idx, pairs, xy, inl)
+            if moved < 0.25 * c.refine_radius_px:  # the search around the refined pose would find the same
+                break
         n_inl = int(inl.sum())
         if n_inl < c.min_inliers:
             return _lost(f"{n_inl} pose inliers < {c.min_inliers}", method, num_matches, n_inl)
@@ -214,6 +259,20 @@ class Tracker:
         return TrackingResult("tracked", f"{n_inl} inliers of {len(pairs)} local-map matches", pose, method,
                               num_matches, n_inl, kp_idx, pids, local_map.ref_xy[pos[in_ref]],
                               frame.keypoints[kp_idx[in_ref]])
+
+    def _from_prediction(self, predicted: np.ndarray, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera,
+                         K: np.ndarray) -> np.ndarray | None:
+        """ORB-SLAM's TrackWithMotionModel without RANSAC: refine the predicted pose on all the matches
+        (robust loss), accepted when most matches are then inliers; else None (RANSAC decides)."""
+        ref = pycolmap.refine_absolute_pose(rigid_from_matrix(predicted), xy, xyz, np.ones(len(xy), bool), camera,
+                                            self._refinement)
+        if ref is None:
+            return None
+        pose = matrix_from_rigid(ref["cam_from_world"])
+        n_inl = int(self._inliers(pose, xy, xyz, K).sum())
+        if n_inl < max(self.config.min_inliers, self.config.prediction_min_inlier_ratio * len(xy)):
+            return None
+        return pose
 
     def _ransac(self, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera) -> np.ndarray | None:
         ans = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, camera, self._estimation, self._refinement)
