@@ -153,11 +153,11 @@ def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, binary: bool,
     a = np.array(rows, dtype=np.float64)
     keep = (a[:, 2] < cfg.ratio * a[:, 3]) & (a[:, 2] <= _max_distance(binary, cfg))
     pairs = a[keep, :2].astype(np.int64)
-    if cfg.mutual and len(pairs):
-        back = bf.match(d2, d1)
+    if cfg.mutual and len(pairs):  # the reverse nearest neighbour, of the matched desc2 rows only
+        js = np.unique(pairs[:, 1])
         best_back = np.full(len(desc2), -1, np.int64)
-        for m in back:
-            best_back[m.queryIdx] = m.trainIdx
+        for m in bf.match(np.ascontiguousarray(d2[js]), d1):
+            best_back[js[m.queryIdx]] = m.trainIdx
         pairs = pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
     return pairs
 
