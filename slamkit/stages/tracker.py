@@ -2,13 +2,14 @@
 TrackWithMotionModel / TrackReferenceKeyFrame / TrackLocalMap, on pycolmap's estimators).
 
 1. With a predicted pose (constant-velocity model): project the local map points and match each to
-   keypoints within ``search_radius_px`` (SearchByProjection); else brute-force match the frame against
-   the local map descriptors.
+   keypoints within ``narrow_search_radius_px``, widened to ``search_radius_px`` when that finds too few
+   (SearchByProjection); else brute-force match the frame against the local map descriptors.
 2. Absolute pose: with the motion model, its prediction refined on all matches (robust loss) when most of
    them are then inliers (ORB-SLAM's TrackWithMotionModel, no RANSAC); else
    ``pycolmap.estimate_and_refine_absolute_pose`` (LO-RANSAC P3P + refinement).
 3. Track the local map: project again with the estimated pose, match within ``refine_radius_px`` and
-   refine the pose on all inliers (``pycolmap.refine_absolute_pose``, motion-only bundle adjustment).
+   refine the pose on all inliers (``pycolmap.refine_absolute_pose``, motion-only bundle adjustment);
+   repeated (``local_map_rounds``) while the refinement moves the projections.
 """
 
 from __future__ import annotations
@@ -152,9 +153,11 @@ class TrackingResult:
         return len(self.ref_xy)
 
 
-def _project(cam_from_world: np.ndarray, xyz: np.ndarray, K: np.ndarray) -> np.ndarray:
+def _project(cam_from_world: np.ndarray, xyz: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (N, 2) of points xyz (N, 3) and their depths (N,) (pixels are meaningless where depth <= 0)."""
     Xc = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    return Xc[:, :2] / np.maximum(Xc[:, 2:], 1e-9) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    z = Xc[:, 2]
+    return Xc[:, :2] / np.maximum(z, 1e-9)[:, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]], z
 
 
 def _lost(reason: str, method: str, num_matches: int = 0, num_inliers: int = 0) -> TrackingResult:
@@ -225,8 +228,8 @@ class Tracker:
             if initial is None:
                 return _lost(f"no pose from {len(pairs)} matches to the local map", method, num_matches)
         # track the local map: guided search with the estimated pose, then motion-only refinement; again
-        # while that adds inliers (a pose from few matches can sit in a rotation-translation ambiguity whose
-        # small search radius hides the points that would pull it out)
+        # while the refinement moves the pose (a pose from few matches can sit in a rotation-translation
+        # ambiguity whose small search radius hides the points that would pull it out)
         pose, best = initial, None
         for _ in range(c.local_map_rounds):
             idx, uv = local_map.project(pose, K, size)
@@ -240,8 +243,8 @@ class Tracker:
                 ref = pycolmap.refine_absolute_pose(rigid_from_matrix(pose), xy, xyz, inl, camera, self._refinement)
                 if ref is not None:
                     refined = matrix_from_rigid(ref["cam_from_world"])
-                    moved = float(np.median(np.linalg.norm(_project(refined, xyz[inl], K) - _project(pose, xyz[inl], K),
-                                                           axis=1)))
+                    moved = float(np.median(np.linalg.norm(_project(refined, xyz[inl], K)[0]
+                                                           - _project(pose, xyz[inl], K)[0], axis=1)))
                     pose = refined
                     inl = self._inliers(pose, xy, xyz, K)
             if best is not None and inl.sum() < best[4].sum():
@@ -283,9 +286,6 @@ class Tracker:
         return matrix_from_rigid(ans["cam_from_world"])
 
     def _inliers(self, cam_from_world: np.ndarray, xy: np.ndarray, xyz: np.ndarray, K: np.ndarray) -> np.ndarray:
-        Xc = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-        z = Xc[:, 2]
-        ok = z > 1e-9
-        uv = Xc[:, :2] / np.where(ok, z, 1.0)[:, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+        uv, z = _project(cam_from_world, xyz, K)
         err2 = ((uv - xy) ** 2).sum(axis=1)
-        return ok & (err2 < self.config.max_error_px ** 2)
+        return (z > 1e-9) & (err2 < self.config.max_error_px ** 2)
