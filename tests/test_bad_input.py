@@ -115,7 +115,6 @@ def test_intrinsics_that_do_not_fit_the_images_name_the_calibration(tmp_path):
         open_tum_sequence(folder)
 
 
-# ----------------------------------------------------------------------------- no motion at all
 @pytest.mark.parametrize("text", ["500", "500,500,320,240", "500 500 320 240 0 0 0 0", "(500, 500, 320, 240, 0, 0, 0, 0, 0)"])
 def test_camera_given_for_an_uncalibrated_folder_replaces_the_guess(handheld_folder, text):
     """A plain image folder has guessed intrinsics (focal 1.2 x 640 = 768 px); SlamConfig.camera (CLI
@@ -145,6 +144,7 @@ def test_bad_camera_text_names_the_parameter(handheld_folder, text, error, match
         Slam(open_source(handheld_folder / "rgb"), SlamConfig(camera=text).validate())
 
 
+# ----------------------------------------------------------------------------- no motion at all
 def test_all_frames_identical_never_initializes_and_says_why(tmp_path):
     pose = synthetic_source("sideways", frames=2).gt_poses[0]
     src = SyntheticSource(default_room(), np.repeat(pose[None], 24, axis=0), noise=1.0, name="still")
