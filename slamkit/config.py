@@ -53,6 +53,10 @@ class SlamConfig:
     """When the local map cannot track a frame, try this many most similar keyframes (0 disables)."""
     max_lost_frames: int = 30
     """After this many consecutive lost frames a new map segment is initialized."""
+    prefetch: bool = True
+    """Read the next frame and extract its features on a background thread while the current frame is
+    tracked and mapped (OpenCV's image decoding and ORB release the GIL, so on two cores that time
+    overlaps). The trajectory is the same either way; False keeps everything on the calling thread."""
     thumbnail_width: int = 160
     """Keyframe thumbnails kept for viewers, pixels wide (0 = none)."""
     seed: int = 0

@@ -165,6 +165,10 @@ class Slam:
         self.mapper = Mapper(c.mapper, matcher)
         self.bundle_adjuster = BundleAdjuster(c.ba)
         self.initializer = Initializer(self.camera, _seeded(c.initializer, c.seed), matcher)
+        self._drain_prefetch(getattr(self, "_prefetched", None))
+        self._prefetched: tuple | None = None
+        """(cursor, Future of :meth:`_load`) of the frame being read ahead (``config.prefetch``)."""
+        self._prefetcher = getattr(self, "_prefetcher", None)
         self.indices = np.arange(0, len(self.source), c.frame_skip)[: c.max_frames]
         self.records: list[FrameRecord] = []
         self.segments: list[Segment] = []
@@ -254,17 +258,11 @@ class Slam:
         t_start = time.perf_counter()
         cpu_start = time.process_time()
         timings: dict[str, float] = {}
-        t = time.perf_counter()
-        try:
-            frame = self.source[int(self.indices[self._cursor])]
-        except (ImageReadError, CalibrationError) as e:  # a bad frame is skipped with its reason
-            return self._skip_unreadable(e, timings, t_start, cpu_start)
-        frame = _reindexed(frame, self._cursor)
-        timings["read"] = time.perf_counter() - t
+        loaded = self._next_frame()
+        if isinstance(loaded[0], (ImageReadError, CalibrationError)):  # a bad frame is skipped with its reason
+            return self._skip_unreadable(loaded[0], timings, t_start, cpu_start)
+        frame, ff, timings["read"], timings["features"] = loaded
         self._cursor += 1
-        t = time.perf_counter()
-        ff = self._frame_features(frame)
-        timings["features"] = time.perf_counter() - t
         self.last_frame, self.last_features = frame, ff
         record = FrameRecord(frame.index, frame.frame_id, frame.timestamp, LOST)
         self.records.append(record)
@@ -280,6 +278,47 @@ class Slam:
         for cb in self.callbacks:
             cb(self, result)
         return result
+
+    def _load(self, cursor: int) -> tuple:
+        """Read frame ``cursor`` and extract its features: (frame, features, read s, features s), or
+        (the source's ImageReadError / CalibrationError, read s) for a frame it cannot deliver."""
+        t = time.perf_counter()
+        try:
+            frame = self.source[int(self.indices[cursor])]
+        except (ImageReadError, CalibrationError) as e:
+            return e, time.perf_counter() - t
+        frame = _reindexed(frame, cursor)
+        t_read = time.perf_counter() - t
+        t = time.perf_counter()
+        ff = self._frame_features(frame)
+        return frame, ff, t_read, time.perf_counter() - t
+
+    def _next_frame(self) -> tuple:
+        """:meth:`_load` of the frame at the cursor, done ahead on the prefetch thread when
+        ``config.prefetch`` (then the next frame's load starts here, before this one is processed)."""
+        cursor, job = self._cursor, self._prefetched
+        self._prefetched = None
+        if job is not None and job[0] == cursor:
+            loaded = job[1].result()  # the worker's exception, if any, is raised here
+        else:
+            self._drain_prefetch(job)
+            loaded = self._load(cursor)
+        if self.config.prefetch and cursor + 1 < len(self.indices):
+            if self._prefetcher is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._prefetcher = ThreadPoolExecutor(1, thread_name_prefix="slamkit-prefetch")
+            self._prefetched = (cursor + 1, self._prefetcher.submit(self._load, cursor + 1))
+        return loaded
+
+    @staticmethod
+    def _drain_prefetch(job) -> None:
+        """Wait for a prefetch that will not be used (the source is read by one thread at a time)."""
+        if job is not None:
+            try:
+                job[1].result()
+            except Exception:  # noqa: BLE001 - the frame is read again when it is due
+                pass
 
     def _skip_unreadable(self, error: Exception, timings: dict, t_start: float, cpu_start: float) -> StepResult:
         """A frame the source cannot deliver: status "skipped", the source's message (file, frame) in the

@@ -115,6 +115,30 @@ def test_same_seed_gives_identical_trajectory():
     np.testing.assert_array_equal(a.poses, b.poses)
 
 
+def test_prefetching_the_next_frame_changes_nothing():
+    """``prefetch`` loads frame n + 1 (read + features) on a background thread while frame n is processed:
+    the trajectory is bit-identical to loading on the calling thread, also after a reset that drops a
+    pending load."""
+    spec = "synthetic:handheld?frames=60&noise=1"
+
+    def run(**kw):
+        slam = Slam(open_source(spec), SlamConfig(**kw))
+        slam.run()
+        return slam.trajectory()
+
+    a, b = run(prefetch=False), run(prefetch=True)
+    assert len(a) > 40
+    np.testing.assert_array_equal(a.poses, b.poses)
+    slam = Slam(open_source(spec), SlamConfig(prefetch=True))
+    for _ in range(15):
+        slam.step()
+    assert slam._prefetched is not None and slam._prefetched[0] == 15  # frame 15 is being loaded ahead
+    slam.reset(SlamConfig(prefetch=True, frame_skip=2))
+    slam.run()
+    c = run(prefetch=False, frame_skip=2)
+    np.testing.assert_array_equal(slam.trajectory().poses, c.poses)
+
+
 def test_pure_rotation_does_not_initialize_and_says_why():
     slam = Slam(open_source("synthetic:rotation?frames=45"), SlamConfig().with_overrides(init_frames=15))
     results = slam.run()
