@@ -47,6 +47,13 @@ class InitializerConfig:
     """Candidate second images tried per window."""
     max_error_px: float = 2.0
     """RANSAC threshold of the two-view geometry, pixels."""
+    max_pose_disagreement_deg: float = 1.0
+    """When the two-view geometry prefers a homography (pycolmap's PLANAR / PANORAMIC configurations), the
+    essential matrix's relative pose must agree with the homography's within this rotation angle, and
+    within 10x this in translation direction; else the pair is ambiguous and rejected. With a small
+    baseline a homography fits a 3D scene as well as the essential matrix does, and its decomposition can
+    give a wrong pose with apparent parallax (7-Scenes frames 28-35: rotation 2.4 degrees off, translation
+    direction 90 degrees off, and a map whose scale broke later)."""
     max_reproj_error_px: float = 4.0
     min_track_angle_deg: float = 1.5
     window_features: int = 1000
@@ -92,6 +99,11 @@ class InitResult:
         return self.status == "initialized"
 
 
+def _angle_deg(R: np.ndarray) -> float:
+    """Rotation angle of a (3, 3) rotation matrix, degrees."""
+    return math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(R)) - 1.0) / 2.0))))
+
+
 def parallax_deg(x1: np.ndarray, x2: np.ndarray, R_2from1: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Triangulation angle (degrees) of matches x1 <-> x2 (N, 2) pixels: the angle between the viewing rays
     of both cameras expressed in camera 1 (rotation compensated; independent of the baseline length)."""
@@ -121,6 +133,10 @@ class Initializer:
         opts.ransac.random_seed = config.random_seed
         opts.min_num_inliers = config.min_matches
         self._tvg_options = opts
+        essential = pycolmap.RANSACOptions()
+        essential.max_error = config.max_error_px
+        essential.random_seed = config.random_seed
+        self._essential_ransac = essential
 
     def reset(self) -> None:
         self.frames.clear()
@@ -215,6 +231,9 @@ class Initializer:
         inl = np.asarray(tvg.inlier_matches)
         if tvg.cam2_from_cam1 is None or len(inl) < c.min_matches:
             return InitResult("failed", f"{len(inl)} two-view inliers < {c.min_matches}")
+        ambiguity = self._ambiguity(fa, fb, matches, tvg)
+        if ambiguity:
+            return InitResult("failed", ambiguity)
         ratio = len(inl) / len(matches)
         if ratio < need_ratio:
             return InitResult("failed", f"inlier ratio {ratio:.2f} < {need_ratio:g}")
@@ -244,6 +263,29 @@ class Initializer:
                                          f"{n_good} with parallax >= {c.min_tri_angle_deg:g} deg (median "
                                          f"{angle:.1f} deg), {n_points} points",
                           slam_map, fa.index, fb.index, angle, n_points)
+
+    def _ambiguity(self, fa: FrameFeatures, fb: FrameFeatures, matches: np.ndarray, tvg) -> str:
+        """"" when the relative pose is unambiguous, else why not: a homography-based pose (planar or
+        panoramic configuration) that the essential matrix's pose contradicts (ORB-SLAM compares its
+        homography and fundamental-matrix reconstructions the same way)."""
+        cfg = pycolmap.TwoViewGeometryConfiguration
+        if tvg.config not in (cfg.PLANAR, cfg.PANORAMIC, cfg.PLANAR_OR_PANORAMIC):
+            return ""
+        alt = pycolmap.estimate_essential_matrix(fa.keypoints[matches[:, 0]], fb.keypoints[matches[:, 1]],
+                                                 self._pycamera, self._pycamera, self._essential_ransac)
+        name = str(tvg.config).rsplit(".", 1)[-1].lower()
+        if alt is None:
+            return f"{name} two-view geometry and no essential matrix to confirm its pose"
+        h, e = tvg.cam2_from_cam1, alt["cam2_from_cam1"]
+        d_rot = _angle_deg(h.rotation.matrix() @ e.rotation.matrix().T)
+        th, te = np.asarray(h.translation), np.asarray(e.translation)
+        cos = float(th @ te) / max(float(np.linalg.norm(th) * np.linalg.norm(te)), 1e-12)
+        d_dir = math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+        tol = self.config.max_pose_disagreement_deg
+        if d_rot > tol or d_dir > 10 * tol:
+            return (f"ambiguous relative pose: the {name} homography's and the essential matrix's differ by "
+                    f"{d_rot:.1f} deg in rotation and {d_dir:.0f} deg in translation direction")
+        return ""
 
     @staticmethod
     def _global_ba(slam_map: SlamMap) -> None:
