@@ -231,9 +231,6 @@ class Initializer:
         inl = np.asarray(tvg.inlier_matches)
         if tvg.cam2_from_cam1 is None or len(inl) < c.min_matches:
             return InitResult("failed", f"{len(inl)} two-view inliers < {c.min_matches}")
-        ambiguity = self._ambiguity(fa, fb, matches, tvg)
-        if ambiguity:
-            return InitResult("failed", ambiguity)
         ratio = len(inl) / len(matches)
         if ratio < need_ratio:
             return InitResult("failed", f"inlier ratio {ratio:.2f} < {need_ratio:g}")
@@ -244,6 +241,9 @@ class Initializer:
         if n_good < c.min_points:
             return InitResult("failed", f"{n_good} matches with parallax >= {c.min_tri_angle_deg:g} deg "
                                         f"< {c.min_points} (median {angle:.2f} deg)")
+        ambiguity = self._ambiguity(fa, fb, matches, tvg)  # after the parallax test: a still camera fails that
+        if ambiguity:
+            return InitResult("failed", ambiguity)
         slam_map = SlamMap(self.camera)
         ia = slam_map.add_image(fa.index, fa.timestamp, fa.keypoints, fa.features, fa.colors, fa.thumbnail)
         ib = slam_map.add_image(fb.index, fb.timestamp, fb.keypoints, fb.features, fb.colors, fb.thumbnail)
