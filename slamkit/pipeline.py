@@ -152,6 +152,10 @@ class Slam:
     # ----------------------------------------------------------------- lifecycle
     def reset(self, config: SlamConfig | None = None) -> None:
         """Start over (with a new config if given): empty map, first frame next."""
+        self._drain_prefetch(getattr(self, "_prefetched", None))  # before the stages it uses are replaced
+        self._prefetched: tuple | None = None
+        """(cursor, Future of :meth:`_load`) of the frame being read ahead (``config.prefetch``)."""
+        self._prefetcher = getattr(self, "_prefetcher", None)
         if config is not None:
             self.config = config.validate()
         c = self.config
@@ -165,10 +169,6 @@ class Slam:
         self.mapper = Mapper(c.mapper, matcher)
         self.bundle_adjuster = BundleAdjuster(c.ba)
         self.initializer = Initializer(self.camera, _seeded(c.initializer, c.seed), matcher)
-        self._drain_prefetch(getattr(self, "_prefetched", None))
-        self._prefetched: tuple | None = None
-        """(cursor, Future of :meth:`_load`) of the frame being read ahead (``config.prefetch``)."""
-        self._prefetcher = getattr(self, "_prefetcher", None)
         self.indices = np.arange(0, len(self.source), c.frame_skip)[: c.max_frames]
         self.records: list[FrameRecord] = []
         self.segments: list[Segment] = []
