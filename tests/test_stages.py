@@ -217,6 +217,8 @@ def test_initializer_config_validation():
         InitializerConfig(init_frames=1).validate()
     with pytest.raises(ConfigError, match="strategy"):
         InitializerConfig(strategy="magic").validate()
+    with pytest.raises(ConfigError, match="max_pose_disagreement_deg"):
+        InitializerConfig(max_pose_disagreement_deg=0).validate()
 
 
 # ----------------------------------------------------------------------------- map, triangulation, tracking

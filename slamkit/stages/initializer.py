@@ -75,6 +75,9 @@ class InitializerConfig:
             raise ConfigError(f"initializer.min_matches must be >= 8 (got {self.min_matches})")
         if not 0 < self.min_inlier_ratio <= 1:
             raise ConfigError(f"initializer.min_inlier_ratio must be in (0, 1] (got {self.min_inlier_ratio})")
+        if self.max_pose_disagreement_deg <= 0:
+            raise ConfigError("initializer.max_pose_disagreement_deg must be > 0 "
+                              f"(got {self.max_pose_disagreement_deg})")
         if self.min_tri_angle_deg < 0:
             raise ConfigError(f"initializer.min_tri_angle_deg must be >= 0 (got {self.min_tri_angle_deg})")
 
