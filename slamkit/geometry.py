@@ -106,6 +106,16 @@ def pose_from_rows(rows: np.ndarray) -> np.ndarray:
     return T
 
 
+def rotation_angle_deg(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations -> angle in degrees (float for one rotation), accurate for small and large
+    angles (atan2 of the axis norm and the trace, not acos of the trace)."""
+    R = np.asarray(R, dtype=np.float64)
+    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    angle = np.degrees(np.arctan2(np.linalg.norm(axis, axis=-1), trace - 1.0))
+    return float(angle) if angle.ndim == 0 else angle
+
+
 def invert_pose(T: np.ndarray) -> np.ndarray:
     """(..., 4, 4) rigid transforms -> their inverses (R^T, -R^T t), without a general matrix inverse."""
     T = np.asarray(T, dtype=np.float64)

@@ -21,6 +21,7 @@ import numpy as np
 import pycolmap
 
 from ..errors import ConfigError, SlamkitError
+from ..geometry import rotation_angle_deg
 from ..types import Trajectory
 
 __all__ = ["ALIGN_KINDS", "Alignment", "AlignmentError", "estimate_alignment"]
@@ -51,7 +52,7 @@ class Alignment:
         object.__setattr__(self, "scale", float(self.scale))
 
     def __repr__(self) -> str:
-        angle = np.degrees(np.arccos(np.clip((np.trace(self.rotation) - 1) / 2, -1.0, 1.0)))
+        angle = rotation_angle_deg(self.rotation)
         return (f"Alignment(kind={self.kind!r}, scale={self.scale:.6g}, rotation={angle:.4g} deg, "
                 f"translation={np.array2string(self.translation, precision=4)})")
 

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import AssociationError, ConfigError
-from ..geometry import invert_pose
+from ..geometry import invert_pose, rotation_angle_deg
 from ..types import Trajectory
 from .align import Alignment, estimate_alignment
 from .associate import associate
@@ -245,13 +245,6 @@ def _pairs_by_path(positions: np.ndarray, delta: float, all_pairs: bool) -> np.n
     return np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
 
 
-def _rotation_angle_deg(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations -> angle in degrees, accurate for small and large angles."""
-    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
-    trace = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
-    return np.degrees(np.arctan2(np.linalg.norm(axis, axis=-1), trace - 1.0))
-
-
 def _rpe(m: _Matched, delta: float, unit: str, all_pairs: bool) -> RpeResult:
     unit_name = _UNITS.get(unit)
     if unit_name is None:
@@ -276,7 +269,7 @@ def _rpe(m: _Matched, delta: float, unit: str, all_pairs: bool) -> RpeResult:
     P_rel = invert_pose(P[i]) @ P[j]
     E = invert_pose(Q_rel) @ P_rel
     t_err = np.linalg.norm(E[:, :3, 3], axis=1)
-    r_err = _rotation_angle_deg(E[:, :3, :3])
+    r_err = rotation_angle_deg(E[:, :3, :3])
     return RpeResult(ErrorStats.from_errors(t_err), ErrorStats.from_errors(r_err), t_err, r_err, pairs,
                      m.est.timestamps[j].copy(), delta, unit_name, all_pairs, n, m.alignment)
 

@@ -20,6 +20,7 @@ import pycolmap
 
 from ..camera import Intrinsics
 from ..errors import ConfigError
+from ..geometry import rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, pycolmap_camera
 from .ba import bundle_adjustment_options
@@ -100,11 +101,6 @@ class InitResult:
     @property
     def initialized(self) -> bool:
         return self.status == "initialized"
-
-
-def _angle_deg(R: np.ndarray) -> float:
-    """Rotation angle of a (3, 3) rotation matrix, degrees."""
-    return math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(R)) - 1.0) / 2.0))))
 
 
 def parallax_deg(x1: np.ndarray, x2: np.ndarray, R_2from1: np.ndarray, K: np.ndarray) -> np.ndarray:
@@ -280,7 +276,7 @@ class Initializer:
         if alt is None:
             return f"{name} two-view geometry and no essential matrix to confirm its pose"
         h, e = tvg.cam2_from_cam1, alt["cam2_from_cam1"]
-        d_rot = _angle_deg(h.rotation.matrix() @ e.rotation.matrix().T)
+        d_rot = rotation_angle_deg(h.rotation.matrix() @ e.rotation.matrix().T)
         th, te = np.asarray(h.translation), np.asarray(e.translation)
         cos = float(th @ te) / max(float(np.linalg.norm(th) * np.linalg.norm(te)), 1e-12)
         d_dir = math.degrees(math.acos(min(1.0, max(-1.0, cos))))

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
+from ..geometry import rotation_angle_deg
 from .initializer import parallax_deg
 
 
@@ -87,7 +88,7 @@ def median_parallax_deg(ref_xy: np.ndarray, cur_xy: np.ndarray, ref_from_world: 
     without matches. Independent of the map's scale; pure rotation gives ~0 whatever the rotation.
     """
     R = np.asarray(cur_from_world)[:3, :3] @ np.asarray(ref_from_world)[:3, :3].T  # cur_from_ref
-    rotation = math.degrees(math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    rotation = rotation_angle_deg(R)
     if len(ref_xy) == 0:
         return float("nan"), rotation
     angles = parallax_deg(np.asarray(ref_xy, np.float64), np.asarray(cur_xy, np.float64), R, np.asarray(K))

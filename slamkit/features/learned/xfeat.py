@@ -154,7 +154,8 @@ class XFeatExtractor:
     level's). The default ``(1.0,)`` is upstream XFeat's single scale: a map point then stops matching once
     the camera has moved closer or away, and the map's scale drifts more than ORB's. On 7-Scenes (600
     frames) that pyramid gave 3.13 cm (mean of seeds 0-9) against 3.64 cm single-scale (seeds 0-2), ORB
-    2.91 cm, but added 50-60 ms of CPU per frame, over the 0.2 s per frame budget: not the default.
+    2.91 cm, but cost 60 ms more CPU per frame (129 against 69 ms on one core), over the 0.2 s per frame
+    budget: not the default.
 
     Speed on one CPU core: with ``fuse`` (default) inference runs a copy of the network whose batch norms
     are folded into the convolutions, in channels-last layout (~25 % less CPU; outputs equal to ~1e-5, so
@@ -188,10 +189,8 @@ class XFeatExtractor:
 
     @torch.inference_mode()
     def detect_and_compute(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """image [1 x 1 x H x W] -> keypoints [N x 2] pixels (x, y), descriptors [N x 64], scores [N].
-
-        With several ``scales`` (image pyramid, as ORB-SLAM's) each level keeps a share of
-        ``num_features`` proportional to its area, and the keypoints of all levels are concatenated."""
+        """image [1 x 1 x H x W] -> keypoints [N x 2] pixels (x, y), descriptors [N x 64], scores [N], over
+        the levels of ``scales`` (see the class docstring)."""
         scales = [float(x) for x in self.conf["scales"]]
         shares = np.array([x * x for x in scales]) / sum(x * x for x in scales)
         counts = np.floor(shares * self.num_features).astype(int)
