@@ -1,7 +1,7 @@
 """slamkit against COLMAP's incremental SfM (and ORB-SLAM2's published numbers) on the shared real sequences.
 
 For each sequence (``7scenes-redkitchen`` frames 0-599, KITTI odometry 07 frames 0-159) this runs slamkit
-(default configuration, ORB), takes COLMAP's result from the cache of :mod:`colmap_baseline` (running it when
+(default configuration, ORB; or the presets of ``--config``, once per seed of ``--seeds``), takes COLMAP's result from the cache of :mod:`colmap_baseline` (running it when
 absent, unless ``--no-colmap``), and writes one row per (sequence, method) to
 ``benchmarks/results/slam_vs_colmap.csv`` with the issue's targets and whether slamkit meets them:
 
@@ -19,6 +19,7 @@ Usage::
     .venv/bin/python benchmarks/bench_slam.py                 # both sequences, COLMAP from cache or run
     .venv/bin/python benchmarks/bench_slam.py --no-colmap     # slamkit only
     .venv/bin/python benchmarks/bench_slam.py --sequences kitti-07 --config accurate
+    .venv/bin/python benchmarks/bench_slam.py --no-colmap --config default sift --seeds 0 1 2 3 4
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from colmap_baseline import CONFS, load_cached, run_colmap  # noqa: E402
 
 from slamkit.config import SlamConfig  # noqa: E402
+from slamkit.errors import ConfigError  # noqa: E402
 from slamkit.eval import ate  # noqa: E402
 from slamkit.io import atomic_write_text, write_tum  # noqa: E402
 from slamkit.pipeline import Slam  # noqa: E402
@@ -128,38 +130,57 @@ def _fmt(v, nd=4) -> str:
     return str(v)
 
 
-def bench_sequence(seq: Sequence, *, config="default", colmap: bool = True, colmap_conf: str = "default",
-                   verbose: bool = True) -> list[dict] | None:
-    """Rows of the table for one sequence, or None (with a message) when its data is absent."""
+def _label(name: str, config: SlamConfig) -> str:
+    return "slamkit (default, ORB)" if name == "default" else f"slamkit ({name}, {config.feature_pipeline})"
+
+
+def _slamkit_row(seq: Sequence, label: str, runs: list[dict], seeds: list[int], cm) -> dict:
+    """One table row for a configuration: with several seeds, ATE is the mean over them (per seed in the
+    note), posed the smallest fraction, wall time, CPU time and fps the means; targets judged on those."""
+    ates = [r["ate_rmse_m"] for r in runs]
+    ate_mean = None if any(a is None for a in ates) else sum(ates) / len(ates)
+    wall = sum(r["wall_time_s"] for r in runs) / len(runs)
+    cpu = sum(r["cpu_time_s"] for r in runs) / len(runs)
+    posed = min(r["fraction_posed"] for r in runs)
+    ratio = ate_mean / cm.ate_rmse_m if cm is not None and cm.ate_rmse_m and ate_mean is not None else None
+    speedup = cm.wall_time_s / wall if cm is not None else None
+    s = runs[0]["summary"]
+    note = (f"{s['keyframes']} keyframes, {len(s['segments'])} map segment(s), "
+            f"posed in any map {runs[0]['fraction_posed_any_map']:.3f}")
+    if len(runs) > 1:
+        note = (f"mean of seeds {', '.join(map(str, seeds))}: ATE per seed "
+                + " / ".join("-" if a is None else f"{a:.4g}" for a in ates)
+                + (f" (sd {_sd(ates):.2g} m)" if ate_mean is not None else "")
+                + f"; seed {seeds[0]}: " + note)
+    return {
+        "sequence": seq.name, "method": label, "frames": runs[0]["frames"], "ate_rmse_m": ate_mean,
+        "fraction_posed": posed, "wall_time_s": wall, "fps": runs[0]["frames"] / wall, "cpu_time_s": cpu,
+        "ate_ratio_vs_colmap": ratio, "speedup_vs_colmap": speedup,
+        "pass_ate": _pass(None if ratio is None else ratio <= TARGETS["ate_ratio_max"]),
+        "pass_posed": _pass(posed >= TARGETS["fraction_posed_min"]),
+        "pass_fps": _pass(runs[0]["frames"] / wall >= TARGETS["fps_min"]),
+        "pass_speedup": _pass(None if speedup is None else speedup >= TARGETS["speedup_min"]),
+        "note": note,
+    }
+
+
+def _sd(values: list[float]) -> float:
+    m = sum(values) / len(values)
+    return math.sqrt(sum((v - m) ** 2 for v in values) / max(len(values) - 1, 1))
+
+
+def bench_sequence(seq: Sequence, *, configs: dict[str, SlamConfig] | None = None, seeds: list[int] = (0,),
+                   colmap: bool = True, colmap_conf: str = "default", verbose: bool = True) -> list[dict] | None:
+    """Rows of the table for one sequence, or None (with a message) when its data is absent: one row per
+    slamkit configuration (``configs``: label name -> config; default: ``SlamConfig()``), each run once
+    per seed, then COLMAP and the published references."""
     path = DATA / seq.folder
     if not path.exists():
         print(f"[bench] skipping {seq.name}: {path} not found (the shared data sets live in ../shared/data)")
         return None
+    configs = configs or {"default": SlamConfig()}
+    seeds = list(seeds)
     source = open_source(str(path), max_frames=seq.frames, **seq.kw)
-    print(f"[bench] {seq.name}: slamkit on {len(source)} frames ...", flush=True)
-    crash = None
-    try:
-        sk = run_slamkit(source, config, save_dir=RESULTS / f"slamkit_{seq.name}")
-    except Exception as e:  # a crash of slamkit is a benchmark result (a failed row), not the end of the run
-        import traceback
-
-        traceback.print_exc()
-        sk, crash = None, f"slamkit raised {type(e).__name__}: {e}"
-        print(f"[bench] {seq.name}: {crash}", flush=True)
-    if sk is not None:
-        s = sk["summary"]
-        atomic_write_text(RESULTS / f"slamkit_{seq.name}.json", json.dumps(
-            sk | {"date": time.strftime("%Y-%m-%d %H:%M"), "load_avg_at_end": os.getloadavg()},
-            indent=2, default=str))
-        if verbose:
-            stages = ", ".join(f"{k} {v:.1f}" for k, v in sorted(s["timings_s"].items(), key=lambda kv: -kv[1]))
-            print(f"[bench] {seq.name}: slamkit ATE {_fmt(sk['ate_rmse_m'])} m, posed {sk['fraction_posed']:.3f} "
-                  f"(any map {sk['fraction_posed_any_map']:.3f}), {sk['wall_time_s']:.1f} s "
-                  f"(CPU {sk['cpu_time_s']:.1f} s), "
-                  f"{sk['fps']:.1f} fps, "
-                  f"{s['keyframes']} keyframes, {len(s['segments'])} segment(s); stage seconds: {stages}",
-                  flush=True)
-
     cm = None
     cm_note = ""
     if colmap:
@@ -174,29 +195,39 @@ def bench_sequence(seq: Sequence, *, config="default", colmap: bool = True, colm
             cm_note = "; ".join(x for x in (cm_note, cm.notes) if x)
 
     rows = []
-    if sk is None:
-        rows.append({k: None for k in COLUMNS} | {
-            "sequence": seq.name, "method": "slamkit (default, ORB)", "frames": len(source), "pass_ate": "FAIL",
-            "pass_posed": "FAIL", "pass_fps": "FAIL", "pass_speedup": "FAIL", "note": "CRASHED: " + crash})
-    else:
-        ratio = speedup = None
-        if cm is not None and cm.ate_rmse_m and sk["ate_rmse_m"] is not None:
-            ratio = sk["ate_rmse_m"] / cm.ate_rmse_m
-        if cm is not None:
-            speedup = cm.wall_time_s / sk["wall_time_s"]
-        rows.append({
-            "sequence": seq.name, "method": "slamkit (default, ORB)", "frames": sk["frames"],
-            "ate_rmse_m": sk["ate_rmse_m"], "fraction_posed": sk["fraction_posed"],
-            "wall_time_s": sk["wall_time_s"], "fps": sk["fps"], "cpu_time_s": sk["cpu_time_s"],
-            "ate_ratio_vs_colmap": ratio,
-            "speedup_vs_colmap": speedup,
-            "pass_ate": _pass(None if ratio is None else ratio <= TARGETS["ate_ratio_max"]),
-            "pass_posed": _pass(sk["fraction_posed"] >= TARGETS["fraction_posed_min"]),
-            "pass_fps": _pass(sk["fps"] >= TARGETS["fps_min"]),
-            "pass_speedup": _pass(None if speedup is None else speedup >= TARGETS["speedup_min"]),
-            "note": f"{s['keyframes']} keyframes, {len(s['segments'])} map segment(s), "
-                    f"posed in any map {sk['fraction_posed_any_map']:.3f}",
-        })
+    for name, config in configs.items():
+        label, runs, crash = _label(name, config), [], None
+        for seed in seeds:
+            tag = seq.name if (name, seed) == ("default", 0) else f"{seq.name}_{name}_seed{seed}"
+            print(f"[bench] {seq.name}: {label}, seed {seed}, on {len(source)} frames ...", flush=True)
+            try:
+                sk = run_slamkit(source, config.with_overrides(seed=seed), save_dir=RESULTS / f"slamkit_{tag}")
+            except Exception as e:  # a crash of slamkit is a benchmark result (a failed row), not the end of the run
+                import traceback
+
+                traceback.print_exc()
+                crash = f"slamkit raised {type(e).__name__} (seed {seed}): {e}"
+                print(f"[bench] {seq.name}: {crash}", flush=True)
+                break
+            runs.append(sk)
+            s = sk["summary"]
+            atomic_write_text(RESULTS / f"slamkit_{tag}.json", json.dumps(
+                sk | {"config": name, "seed": seed, "date": time.strftime("%Y-%m-%d %H:%M"),
+                      "load_avg_at_end": os.getloadavg()}, indent=2, default=str))
+            if verbose:
+                stages = ", ".join(f"{k} {v:.1f}" for k, v in sorted(s["timings_s"].items(), key=lambda kv: -kv[1]))
+                print(f"[bench] {seq.name}: slamkit ATE {_fmt(sk['ate_rmse_m'])} m, posed {sk['fraction_posed']:.3f} "
+                      f"(any map {sk['fraction_posed_any_map']:.3f}), {sk['wall_time_s']:.1f} s "
+                      f"(CPU {sk['cpu_time_s']:.1f} s), {sk['fps']:.1f} fps, "
+                      f"{s['keyframes']} keyframes, {len(s['segments'])} segment(s); stage seconds: {stages}",
+                      flush=True)
+        if crash is not None:
+            rows.append({k: None for k in COLUMNS} | {
+                "sequence": seq.name, "method": label, "frames": len(source), "pass_ate": "FAIL",
+                "pass_posed": "FAIL", "pass_fps": "FAIL", "pass_speedup": "FAIL", "note": "CRASHED: " + crash})
+        else:
+            rows.append(_slamkit_row(seq, label, runs, seeds, cm))
+    n_slamkit = len(rows)
     if cm is not None:
         rows.append({
             "sequence": seq.name, "method": "COLMAP 4.2 incremental (run here)", "frames": cm.frames,
@@ -217,11 +248,14 @@ def bench_sequence(seq: Sequence, *, config="default", colmap: bool = True, colm
             "note": note,
         })
     # the project's aim: beat the better of ORB-SLAM2 (published) and COLMAP (run here) on ATE
-    best = min((r["ate_rmse_m"] for r in rows[1:] if r["ate_rmse_m"] and "0-299" not in r["note"]), default=None)
+    best = min((r["ate_rmse_m"] for r in rows[n_slamkit:] if r["ate_rmse_m"] and "0-299" not in r["note"]),
+               default=None)
     for r in rows:
         r.setdefault("ate_ratio_vs_best", None)
-    if best and rows[0]["ate_rmse_m"] is not None:
-        rows[0]["ate_ratio_vs_best"] = rows[0]["ate_rmse_m"] / best
+        r.setdefault("cpu_time_s", None)
+    for r in rows[:n_slamkit]:
+        if best and r["ate_rmse_m"] is not None:
+            r["ate_ratio_vs_best"] = r["ate_rmse_m"] / best
     return rows
 
 
@@ -255,35 +289,43 @@ def print_table(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=list(SEQUENCES))
-    ap.add_argument("--config", default="default", help="slamkit preset name (default: SlamConfig())")
+    ap.add_argument("--config", nargs="+", default=["default"], metavar="PRESET",
+                    help="slamkit preset names, a row each (default: SlamConfig()); e.g. --config default sift")
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0], metavar="SEED",
+                    help="run every configuration once per seed; the row gives the mean ATE (default: 0)")
     ap.add_argument("--no-colmap", action="store_true", help="skip the COLMAP baseline (cached or not)")
     ap.add_argument("--colmap-conf", default="default", choices=sorted(CONFS))
-    ap.add_argument("--out", type=Path, default=RESULTS / "slam_vs_colmap.csv")
+    ap.add_argument("--out", type=Path, default=RESULTS / "slam_vs_colmap.csv",
+                    help="CSV file to write (a directory: slam_vs_colmap.csv in it)")
     args = ap.parse_args(argv)
-    config = "default" if args.config == "default" else SlamConfig.preset(args.config)
+    try:
+        configs = {name: SlamConfig() if name == "default" else SlamConfig.preset(name) for name in args.config}
+    except ConfigError as e:
+        ap.error(f"--config: {e}")
+    out = args.out / "slam_vs_colmap.csv" if args.out.is_dir() else args.out
+    if out.suffix != ".csv":
+        ap.error(f"--out {args.out}: expected a .csv file or an existing directory")
+    out.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     rows: list[dict] = []
     for name in args.sequences:
-        got = bench_sequence(SEQUENCES[name], config=config, colmap=not args.no_colmap,
+        got = bench_sequence(SEQUENCES[name], configs=configs, seeds=args.seeds, colmap=not args.no_colmap,
                              colmap_conf=args.colmap_conf)
         rows.extend(got or [])
     if not rows:
         print("[bench] no sequence found: nothing to report")
         return 1
-    for r in rows:
-        r.setdefault("cpu_time_s", None)
     print(f"\nslamkit vs COLMAP ({time.strftime('%Y-%m-%d %H:%M')}, {platform.node()}, {os.cpu_count()} cores, "
           f"load average {os.getloadavg()[0]:.1f}); targets: ATE <= 0.8x COLMAP, >= 98 % posed, >= 30 fps, "
           f">= 20x faster\n")
     print_table(rows)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with open(args.out.with_suffix(".csv.tmp"), "w", newline="") as f:
+    with open(out.with_suffix(".csv.tmp"), "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=COLUMNS)
         w.writeheader()
         for r in rows:
             w.writerow({k: ("" if r[k] is None else r[k]) for k in COLUMNS})
-    os.replace(args.out.with_suffix(".csv.tmp"), args.out)
-    print(f"\n[bench] wrote {args.out}")
+    os.replace(out.with_suffix(".csv.tmp"), out)
+    print(f"\n[bench] wrote {out}")
     return 0
 
 
