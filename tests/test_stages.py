@@ -334,10 +334,10 @@ def test_config_contradictions_are_errors():
 # ----------------------------------------------------------------------------- bundle adjustment
 @pytest.fixture()
 def built_map():
-    """The map of an 80-frame run on the synthetic "sideways" sequence (exact ground truth)."""
+    """The map of a 60-frame run on the synthetic "sideways" sequence (exact ground truth)."""
     from slamkit.pipeline import Slam
 
-    slam = Slam("synthetic:sideways?frames=80", SlamConfig())
+    slam = Slam("synthetic:sideways?frames=60", SlamConfig())
     slam.run()
     assert slam.slam_map is not None and slam.slam_map.num_keyframes >= 6
     return slam.slam_map
