@@ -178,7 +178,7 @@ class NearestNeighborMatcher:
         return match_descriptors(a.descriptors, b.descriptors, a.binary, self.config)
 
 
-_CELL_DY, _CELL_DX = np.divmod(np.arange(9), 3) - np.ones((2, 1), np.int64)  # the 3x3 cells
+_CELL_DY, _CELL_DX = np.repeat([-1, 0, 1], 3), np.tile([-1, 0, 1], 3)  # offsets of a cell's 3x3 neighbourhood
 
 
 def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray, kp_desc: np.ndarray,
@@ -193,13 +193,14 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     M, N = len(proj), len(keypoints)
     if M == 0 or N == 0:
         return np.empty((0, 2), np.int64)
-    # keypoints bucketed in square cells of side `radius`: a point's candidates lie in its 3x3 cells
-    # (x and y kept apart: 1-D gathers are much faster than gathering rows of an (N, 2) array)
+    # keypoints bucketed in square cells of side `radius`: a point's candidates lie in its 3x3 cells. Two
+    # empty cells around the keypoints: any projection with candidates falls inside the grid. (x and y are
+    # kept apart: gathering 1-D arrays is faster than gathering rows of an (N, 2) array.)
     cell = max(float(radius), 1.0)
     kx, ky, px, py = keypoints[:, 0], keypoints[:, 1], proj[:, 0], proj[:, 1]
-    ox, oy = np.floor(kx.min() / cell) - 2, np.floor(ky.min() / cell) - 2  # two empty cells around the
+    ox, oy = np.floor(kx.min() / cell) - 2, np.floor(ky.min() / cell) - 2
     cx, cy = (np.floor(kx / cell) - ox).astype(np.int64), (np.floor(ky / cell) - oy).astype(np.int64)
-    width, height = int(cx.max()) + 3, int(cy.max()) + 3  # keypoints: a projection with candidates is inside
+    width, height = int(cx.max()) + 3, int(cy.max()) + 3
     key = cy * width + cx
     order = np.argsort(key, kind="stable")
     count = np.bincount(key, minlength=width * height)
