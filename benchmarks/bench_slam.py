@@ -182,20 +182,7 @@ def bench_sequence(seq: Sequence, *, configs: dict[str, SlamConfig] | None = Non
     configs = configs or {"default": SlamConfig()}
     seeds = list(seeds)
     source = open_source(str(path), max_frames=seq.frames, **seq.kw)
-    cm = None
-    cm_note = ""
-    if colmap:
-        cm = load_cached(source, CONFS[colmap_conf])
-        if cm is None:
-            print(f"[bench] {seq.name}: no cached COLMAP result; running it (this can take an hour or more)")
-            cm = run_colmap(source, CONFS[colmap_conf])
-        if not cm.complete:
-            cm_note = (f"INCOMPLETE: mapper stopped at the {cm.conf.get('max_total_s')} s budget; numbers are what "
-                       f"it reached")
-        if cm.notes:
-            cm_note = "; ".join(x for x in (cm_note, cm.notes) if x)
-
-    rows = []
+    results = []  # (label, runs, crash) per configuration: slamkit first (minutes), COLMAP after (maybe hours)
     for name, config in configs.items():
         label, runs, crash = _label(name, config), [], None
         for seed in seeds:
@@ -222,6 +209,22 @@ def bench_sequence(seq: Sequence, *, configs: dict[str, SlamConfig] | None = Non
                       f"(CPU {sk['cpu_time_s']:.1f} s), {sk['fps']:.1f} fps, "
                       f"{s['keyframes']} keyframes, {len(s['segments'])} segment(s); stage seconds: {stages}",
                       flush=True)
+        results.append((label, runs, crash))
+    cm = None
+    cm_note = ""
+    if colmap:
+        cm = load_cached(source, CONFS[colmap_conf])
+        if cm is None:
+            print(f"[bench] {seq.name}: no cached COLMAP result; running it (this can take an hour or more)")
+            cm = run_colmap(source, CONFS[colmap_conf])
+        if not cm.complete:
+            cm_note = (f"INCOMPLETE: mapper stopped at the {cm.conf.get('max_total_s')} s budget; numbers are what "
+                       f"it reached")
+        if cm.notes:
+            cm_note = "; ".join(x for x in (cm_note, cm.notes) if x)
+
+    rows = []
+    for label, runs, crash in results:
         if crash is not None:
             rows.append({k: None for k in COLUMNS} | {
                 "sequence": seq.name, "method": label, "frames": len(source), "pass_ate": "FAIL",
