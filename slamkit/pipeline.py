@@ -385,7 +385,7 @@ class Slam:
             rec.keyframe_image_id = image_id
         self.last_keyframe = max(res.slam_map.keyframes)
         self._points_at_last_keyframe = res.slam_map.reconstruction.image(self.last_keyframe).num_points3D
-        self.local_map = LocalMap.build(res.slam_map, self.last_keyframe, self.config.tracker.local_keyframes)
+        self.local_map = self._local_map(res.slam_map, self.last_keyframe)
         self._consecutive_lost = 0
         posed, message = self._track_window(res, timings)
         record.status = record.status if record.rel_pose is not None else LOST
@@ -506,7 +506,7 @@ class Slam:
                 self._set_pose(record, mres.image_id, np.eye(4), TRACKED)
                 self._points_at_last_keyframe = slam_map.reconstruction.image(mres.image_id).num_points3D
                 t = time.perf_counter()
-                self.local_map = LocalMap.build(slam_map, self.last_keyframe, self.config.tracker.local_keyframes)
+                self.local_map = self._local_map(slam_map, self.last_keyframe)
                 timings["local_map"] = time.perf_counter() - t
             else:
                 decision = KeyframeDecision(False, f"keyframe rejected: {mres.reason}", flow, tr.ref_matches)
@@ -570,7 +570,7 @@ class Slam:
         scores = np.array([float(seg.signatures[i] @ ff.signature) for i in ids])
         camera = seg.slam_map.pycolmap_camera
         for k in np.argsort(-scores, kind="stable")[: self.config.relocalization_candidates]:
-            local_map = LocalMap.build(seg.slam_map, ids[k], self.config.tracker.local_keyframes)
+            local_map = self._local_map(seg.slam_map, ids[k])
             tr = self.tracker.step(ff, local_map, camera, None)
             if tr.tracked:
                 self.local_map, self.last_keyframe = local_map, ids[k]
@@ -578,6 +578,10 @@ class Slam:
                 seg.relocalizations += 1
                 return tr
         return None
+
+    def _local_map(self, slam_map: SlamMap, keyframe: int) -> LocalMap:
+        c = self.config.tracker
+        return LocalMap.build(slam_map, keyframe, c.local_keyframes, c.point_descriptor)
 
     def _predict(self, index: int) -> np.ndarray | None:
         """Constant-velocity prediction for frame ``index`` from the two posed frames of the current segment
@@ -658,7 +662,7 @@ class Slam:
             return
         slam_map = seg.slam_map
         first_kf = min(slam_map.keyframes)
-        local_map = LocalMap.build(slam_map, first_kf, self.config.tracker.local_keyframes)
+        local_map = self._local_map(slam_map, first_kf)
         for f in seg.initial_frames:
             rec = self.records[f.index]
             if rec.keyframe_image_id > 0:  # keyframes are posed by bundle adjustment

@@ -270,6 +270,26 @@ def test_tracker_recovers_pose_by_pnp(sideways, exact_map):
         assert res.num_inliers >= 100
 
 
+@pytest.mark.parametrize("point_descriptor, keyframe", [("oldest", 1), ("newest", 2)])
+def test_local_map_matches_points_by_the_chosen_keyframes_descriptors(exact_map, point_descriptor, keyframe):
+    local_map = LocalMap.build(exact_map, 2, num_covisible=5, point_descriptor=point_descriptor)
+    pids = exact_map.point3D_ids(keyframe)
+    has = pids >= 0
+    assert set(local_map.ids) == set(pids[has])           # both keyframes observe every point of this map
+    want = exact_map.keyframes[keyframe].features.descriptors[has][np.argsort(pids[has])]
+    np.testing.assert_array_equal(local_map.descriptors, want)
+    other = exact_map.keyframes[3 - keyframe].features.descriptors
+    other_pids = exact_map.point3D_ids(3 - keyframe)
+    assert (other[other_pids >= 0][np.argsort(other_pids[other_pids >= 0])] != want).any(axis=1).mean() > 0.5
+    with pytest.raises(ConfigError, match="point_descriptor"):
+        LocalMap.build(exact_map, 2, point_descriptor="median")
+    with pytest.raises(ConfigError, match="point_descriptor"):
+        SlamConfig().with_overrides(**{"tracker.point_descriptor": "median"})
+    assert SlamConfig().with_overrides(features="xfeat").tracker.point_descriptor == "oldest"
+    assert SlamConfig().with_overrides(features="xfeat").with_overrides(features="orb").tracker.point_descriptor \
+        == "newest"
+
+
 def test_tracker_takes_a_good_prediction_without_ransac_and_a_bad_one_with_it(sideways, exact_map):
     local_map = LocalMap.build(exact_map, 2, num_covisible=5)
     gt = cam_from_world(sideways, 14)

@@ -24,6 +24,9 @@ from ..features import FrameFeatures, MatchingConfig, guided_match, match_descri
 from ..map import SlamMap, matrix_from_rigid, rigid_from_matrix
 
 
+POINT_DESCRIPTORS = ("oldest", "newest")
+
+
 @dataclass(frozen=True)
 class TrackerConfig:
     max_error_px: float = 4.0
@@ -47,6 +50,14 @@ class TrackerConfig:
     """The local map: points of the last keyframe and of up to this many most covisible keyframes
     (ORB-SLAM's local map is every keyframe sharing points with the frame, up to 80). On 7-Scenes (600
     frames, seeds 0/1/2) 10 gave 4.51/4.08/4.44 cm, 20 3.35/3.06/3.17, 30 2.66/3.19/3.03, 50 2.75/3.13/2.95."""
+    point_descriptor: str = "newest"
+    """The descriptor a local-map point is matched by: that of the reference keyframe or else of the latest
+    keyframe of the local map observing it ("newest"), or of the earliest ("oldest"). The ``xfeat`` pipelines use "oldest": XFeat's descriptors
+    are sampled from a 1/8-resolution map, so keypoints a few pixels apart have near-equal descriptors, and a
+    point matched by its newest descriptor can slide, keyframe after keyframe, onto a neighbouring keypoint.
+    On 7-Scenes (600 frames) "oldest" lowered XFeat's ATE from 3.62 to 2.99 cm (means of seeds 0-3 and
+    0-7) and on KITTI 07 from 0.32 to 0.22 m; ORB got worse with it (7-Scenes 2.45-5.44 cm, lost on
+    KITTI). See "Feature pipelines" in benchmarks/README.md."""
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     random_seed: int = 0
     """RANSAC seed (same input and seed give the same trajectory)."""
@@ -61,6 +72,9 @@ class TrackerConfig:
                               "tracker.refine_radius_px must be > 0")
         if self.local_map_rounds < 1:
             raise ConfigError(f"tracker.local_map_rounds must be >= 1 (got {self.local_map_rounds})")
+        if self.point_descriptor not in POINT_DESCRIPTORS:
+            raise ConfigError(f"tracker.point_descriptor must be one of {', '.join(POINT_DESCRIPTORS)} "
+                              f"(got {self.point_descriptor!r})")
         if self.prediction_min_inlier_ratio <= 0:
             raise ConfigError(f"tracker.prediction_min_inlier_ratio must be > 0 (got {self.prediction_min_inlier_ratio}; "
                               "> 1 turns the motion-model pose off)")
@@ -70,9 +84,10 @@ class TrackerConfig:
 class LocalMap:
     """Map points near the last keyframe, as arrays for vectorised matching.
 
-    ids: (M,) int64 point ids; xyz: (M, 3) world positions; descriptors: (M, D) from the most recent
-    keyframe observing each point; ref_ids / ref_xy: points observed by the reference (last) keyframe,
-    sorted by id, with their (undistorted) pixel positions there.
+    ids: (M,) int64 point ids; xyz: (M, 3) world positions; descriptors: (M, D), each point's from the
+    reference keyframe or the latest keyframe observing it ("newest"), or from the earliest ("oldest");
+    ref_ids / ref_xy: points observed by the reference (last) keyframe, sorted by id, with their
+    (undistorted) pixel positions there.
     """
 
     ids: np.ndarray
@@ -85,11 +100,21 @@ class LocalMap:
     keyframe_ids: list[int]
 
     @classmethod
-    def build(cls, slam_map: SlamMap, ref_image_id: int, num_covisible: int = 10) -> "LocalMap":
+    def build(cls, slam_map: SlamMap, ref_image_id: int, num_covisible: int = 10,
+              point_descriptor: str = "newest") -> "LocalMap":
+        """The points of keyframe ``ref_image_id`` and of its ``num_covisible`` most covisible keyframes;
+        ``point_descriptor``: see :attr:`TrackerConfig.point_descriptor`."""
+        if point_descriptor not in POINT_DESCRIPTORS:
+            raise ConfigError(f"point_descriptor must be one of {', '.join(POINT_DESCRIPTORS)}")
         kf_ids = [ref_image_id] + [i for i, _ in slam_map.covisible(ref_image_id, num_covisible)]
         all_ids, all_desc = [], []
         ref_ids = ref_xy = None
-        for order, iid in enumerate(sorted(kf_ids, key=lambda i: (i != ref_image_id, -i))):
+        # keyframes in the order whose first observation of a point wins
+        if point_descriptor == "oldest":
+            order = sorted(kf_ids, key=lambda i: slam_map.keyframes[i].frame_index)
+        else:
+            order = sorted(kf_ids, key=lambda i: (i != ref_image_id, -slam_map.keyframes[i].frame_index))
+        for iid in order:
             pids = slam_map.point3D_ids(iid)
             has = pids >= 0
             kf = slam_map.keyframes[iid]
@@ -98,9 +123,8 @@ class LocalMap:
             if iid == ref_image_id:
                 o = np.argsort(pids[has])
                 ref_ids, ref_xy = pids[has][o], kf.keypoints[has][o]
-        ids = np.concatenate(all_ids) if all_ids else np.empty(0, np.int64)
-        desc = np.concatenate(all_desc) if all_desc else np.empty((0, 32), np.uint8)
-        ids, first = np.unique(ids, return_index=True)  # first occurrence = most recent keyframe
+        ids, first = np.unique(np.concatenate(all_ids), return_index=True)  # first: the chosen keyframe's
+        desc = np.concatenate(all_desc)
         binary = slam_map.keyframes[ref_image_id].features.binary
         return cls(ids, slam_map.points_xyz(ids), desc[first], binary, ref_image_id, ref_ids, ref_xy, kf_ids)
 
