@@ -50,7 +50,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
+# one BLAS / OpenMP thread, set before numpy (imported by cv2) starts its thread pool: threads started before
+# single_core() pins the process would keep running on the other cores (CPU seconds above wall seconds)
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import cv2  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
@@ -89,7 +94,6 @@ COLUMNS = ["sequence", "pipeline", "frames", "fraction_posed", "keyframes", "ini
 
 def single_core(cores: int) -> None:
     """One thread for torch, OpenCV and OpenMP; pin the process to ``cores`` CPUs (0 = leave as is)."""
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
     cv2.setNumThreads(1)
     if "torch" in sys.modules or _has_torch():
         import torch

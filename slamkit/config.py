@@ -193,12 +193,13 @@ PRESETS: dict[str, dict[str, Any]] = {
 }
 
 XFEAT_TRACKING: dict[str, Any] = {"tracker.matching.max_l2": 0.7, "tracker.matching.ratio": 1.0,
-                                  "tracker.point_descriptor": "oldest"}
+                                  "tracker.point_descriptor": "oldest", "tracker.local_keyframes": 50}
 """Frame tracking with XFeat's 64-d descriptors: a tighter distance threshold and no ratio test in guided
 matching (the projection radius already limits the candidates), and map points matched by their earliest
-descriptor in the local map (see ``TrackerConfig.point_descriptor``). On 7-Scenes redkitchen (600 frames)
-these kept more map points tracked per frame and lowered XFeat's ATE and scale drift; see the "Feature
-pipelines" section of benchmarks/README.md for the runs."""
+descriptor in a local map of 50 keyframes (see ``TrackerConfig.point_descriptor``: the larger local map
+reaches further back for that descriptor). On 7-Scenes redkitchen (600 frames) these kept more map points
+tracked per frame and lowered XFeat's ATE and scale drift; see the "Feature pipelines" section of
+benchmarks/README.md for the runs."""
 
 FEATURE_PIPELINES: dict[str, dict[str, Any]] = {
     "orb": {"features": "orb", "matcher": "nn"},

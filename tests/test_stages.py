@@ -285,7 +285,8 @@ def test_local_map_matches_points_by_the_chosen_keyframes_descriptors(exact_map,
         LocalMap.build(exact_map, 2, point_descriptor="median")
     with pytest.raises(ConfigError, match="point_descriptor"):
         SlamConfig().with_overrides(**{"tracker.point_descriptor": "median"})
-    assert SlamConfig().with_overrides(features="xfeat").tracker.point_descriptor == "oldest"
+    xfeat = SlamConfig().with_overrides(features="xfeat").tracker
+    assert (xfeat.point_descriptor, xfeat.local_keyframes) == ("oldest", 50)
     assert SlamConfig().with_overrides(features="xfeat").with_overrides(features="orb").tracker.point_descriptor \
         == "newest"
 
