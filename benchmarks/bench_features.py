@@ -163,7 +163,7 @@ def run_one(source, p: Pipeline, extra: dict) -> dict:
     }
 
 
-def mean_over_seeds(results: list[dict], seeds: list[int]) -> dict:
+def mean_over_seeds(results: list[dict], seeds: Sequence[int]) -> dict:
     """One row from the runs of one pipeline with ``seeds``: each number is the mean over the runs (None if
     any run has none); the note lists the ATE of every seed."""
     row = {}
@@ -298,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append(row | {"note": f"unavailable: {reasons[key]}"})
                 print(f"[bench_features] {seq_name} {p.label}: unavailable ({reasons[key][:120]})", flush=True)
                 continue
-            results = []
+            results, crash = [], None
             for seed in args.seeds:
                 source = open_source(str(path), max_frames=n, **kw)
                 print(f"[bench_features] {seq_name} {p.label} seed {seed}: {len(source)} frames ...", flush=True)
@@ -308,7 +308,7 @@ def main(argv: list[str] | None = None) -> int:
                     import traceback
 
                     traceback.print_exc()
-                    results = f"CRASHED (seed {seed}): {type(e).__name__}: {e}"
+                    crash = f"CRASHED (seed {seed}): {type(e).__name__}: {e}"
                     break
                 run_key = f"{seq_name}/{key}" + (f"/seed{seed}" if len(args.seeds) > 1 else "")
                 runs[run_key] = r.pop("summary")
@@ -317,8 +317,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"{r['s_per_frame']:.3f} s/frame, {r['cpu_s_per_frame']:.3f} CPU s/frame "
                       f"(features {r['features_cpu_s_per_frame']:.3f}), "
                       f"init {r['initialization_s']:.1f} s, {r['keyframes']} keyframes", flush=True)
-            if isinstance(results, str):
-                rows.append(row | {"note": results})
+            if crash is not None:
+                rows.append(row | {"note": crash})
                 continue
             rows.append(row | {"note": ""} | mean_over_seeds(results, args.seeds)
                         | {"load_avg": round(os.getloadavg()[0], 1)})

@@ -52,9 +52,10 @@ class TrackerConfig:
     frames, seeds 0/1/2) 10 gave 4.51/4.08/4.44 cm, 20 3.35/3.06/3.17, 30 2.66/3.19/3.03, 50 2.75/3.13/2.95."""
     point_descriptor: str = "newest"
     """The descriptor a local-map point is matched by: that of the reference keyframe or else of the latest
-    keyframe of the local map observing it ("newest"), or of the earliest ("oldest"). The ``xfeat`` pipelines use "oldest": XFeat's descriptors
-    are sampled from a 1/8-resolution map, so keypoints a few pixels apart have near-equal descriptors, and a
-    point matched by its newest descriptor can slide, keyframe after keyframe, onto a neighbouring keypoint.
+    keyframe of the local map observing it ("newest"), or of the earliest ("oldest"). The ``xfeat``
+    pipelines use "oldest": XFeat's descriptors are sampled from a 1/8-resolution map, so keypoints a few
+    pixels apart have near-equal descriptors, and a point matched by its newest descriptor can slide,
+    keyframe after keyframe, onto a neighbouring keypoint.
     On 7-Scenes (600 frames) "oldest" lowered XFeat's ATE from 3.62 to 2.99 cm (means of seeds 0-3 and
     0-7) and on KITTI 07 from 0.32 to 0.22 m; ORB got worse with it (7-Scenes 2.45-5.44 cm, lost on
     KITTI). See "Feature pipelines" in benchmarks/README.md."""
