@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-import types
 from pathlib import Path
 
 import cv2
@@ -18,8 +16,10 @@ from slamkit.geometry import (invert_pose, normalize_quaternion, pose_from_rows,
                               quaternion_from_rotation, rotation_from_quaternion, tum_from_pose)
 from slamkit.sources import (VideoSource, detect_layout, open_euroc, open_folder, open_kitti, open_sevenscenes,
                              open_source, open_tum, open_video)
+import slamkit.sources.open as source_opener
 from slamkit.sources.folder import image_size, natural_sorted
-from slamkit.sources.tum import TUM_CALIBRATIONS, associate_nearest
+from slamkit.sources.groundtruth import associate_nearest
+from slamkit.sources.tum import TUM_CALIBRATIONS
 
 W, H = 64, 48
 CAM = Intrinsics(W, H, 50.0, 51.0, 31.5, 23.5)
@@ -487,14 +487,12 @@ def test_open_source_detects_every_layout(tmp_path):
 
 def test_open_source_dispatches_synthetic_specs(monkeypatch):
     calls = []
-    fake = types.ModuleType("slamkit.sources.synthetic")
 
     def open_synthetic(spec, *, frame_skip=1, max_frames=None):
         calls.append((spec, frame_skip, max_frames))
         return "synthetic source"
 
-    fake.open_synthetic = open_synthetic
-    monkeypatch.setitem(sys.modules, "slamkit.sources.synthetic", fake)
+    monkeypatch.setattr(source_opener, "open_synthetic", open_synthetic)
     assert open_source("default") == "synthetic source"
     assert open_source("synthetic:loop?n=30", frame_skip=2, max_frames=5) == "synthetic source"
     assert calls == [("default", 1, None), ("synthetic:loop?n=30", 2, 5)]

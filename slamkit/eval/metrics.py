@@ -27,6 +27,7 @@ import numpy as np
 
 from ..errors import AssociationError, ConfigError
 from ..geometry import invert_pose, rotation_angle_deg
+from ..io.trajectory import read_trajectory
 from ..types import Trajectory
 from .align import Alignment, estimate_alignment
 from .associate import associate
@@ -303,8 +304,6 @@ def rpe(gt: Trajectory, est: Trajectory, delta: float = 1, unit: str = "frames",
 def _load(x: Trajectory | str | os.PathLike) -> tuple[Trajectory, str | None]:
     if isinstance(x, Trajectory):
         return x, None
-    from ..io.trajectory import read_trajectory
-
     return read_trajectory(x), str(Path(x))
 
 

@@ -7,6 +7,7 @@ window, and a notebook's own backend is left alone). Every function draws one fi
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
 from typing import Sequence
@@ -15,15 +16,14 @@ import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
 
+from ..io import atomic_write_bytes
+
 __all__ = ["plot_trajectory_views", "plot_error_over_time", "plot_timings", "plot_effects"]
 
 _DPI = 110
 
 
 def _save(fig, path: str | os.PathLike) -> Path:
-    from ..io import atomic_write_bytes
-    import io
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=_DPI, bbox_inches="tight")
     return atomic_write_bytes(Path(path), buf.getvalue())

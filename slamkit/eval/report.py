@@ -15,11 +15,13 @@ from __future__ import annotations
 import html
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SlamkitError
+from ..io import atomic_write_text, read_trajectory
 from ..types import Trajectory
 from .metrics import ate, rpe
 
@@ -27,8 +29,6 @@ __all__ = ["evaluate_run"]
 
 
 def _read(path: Path) -> Trajectory:
-    from ..io import read_trajectory
-
     return read_trajectory(path)
 
 
@@ -83,7 +83,7 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     }
     files: dict[str, str] = {}
     if plots:
-        from . import plots as P
+        from . import plots as P  # matplotlib only when plotting: the core imports no UI
 
         pdir = run / "plots"
         aligned = a.alignment.apply(est.subset(a.idx_est))
@@ -103,8 +103,6 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     if map_view:
         files["map"] = _map_view(run)
     result["files"] = {k: str(Path(v).relative_to(run)) for k, v in files.items() if v is not None}
-    from ..io import atomic_write_text
-
     atomic_write_text(run / "evaluation.json", json.dumps(result, indent=2, default=_json_default))
     md, page = _report(result, run)
     result["report_md"] = str(atomic_write_text(run / "report.md", md))
@@ -124,7 +122,7 @@ def _map_view(run: Path) -> Path | None:
         return None
     view = None
     try:
-        from ..viz.meshcat_view import MapView
+        from ..viz.meshcat_view import MapView  # the viewer (meshcat) only when a map page is made
 
         view = MapView()
         view.load_run(run)
@@ -184,8 +182,6 @@ def _report(res: dict, run: Path) -> tuple[str, str]:
 
 def _html(md: str, files: dict) -> str:
     """The markdown as a small self-contained HTML page (tables, headings, images, links)."""
-    import re
-
     body, table = [], []
 
     def flush():

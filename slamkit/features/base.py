@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from typing import Callable, Protocol
 
+import cv2
 import numpy as np
 
 from ..errors import ConfigError
-
-# popcount of every byte value, for Hamming distances of binary descriptors
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,8 +137,6 @@ def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, binary: bool,
 
     Returns (M, 2) int64 index pairs (i in desc1, j in desc2), sorted by i.
     """
-    import cv2
-
     if len(desc1) < 2 or len(desc2) < 2:
         return np.empty((0, 2), np.int64)
     norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
@@ -170,8 +167,6 @@ class NearestNeighborMatcher:
     name = "nn"
 
     def __init__(self, config: MatchingConfig | None = None, **overrides):
-        from dataclasses import replace
-
         self.config = replace(config or MatchingConfig(), **overrides)
 
     def match(self, a: Features, b: Features) -> np.ndarray:
@@ -193,6 +188,28 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     M, N = len(proj), len(keypoints)
     if M == 0 or N == 0:
         return np.empty((0, 2), np.int64)
+    pt, kp = _candidates_within(proj, keypoints, radius, kp_taken)
+    if len(pt) == 0:
+        return np.empty((0, 2), np.int64)
+    dist = descriptor_distance(point_desc[pt], kp_desc[kp], binary)
+    ok = dist <= _max_distance(binary, cfg)
+    pt, kp, dist = pt[ok], kp[ok], dist[ok]
+    if len(pt) == 0:
+        return np.empty((0, 2), np.int64)
+    pt, kp, dist = _ratio_test(pt, kp, dist, cfg.ratio)
+    if len(pt) == 0:
+        return np.empty((0, 2), np.int64)
+    # one map point per keypoint: keep the closest descriptor
+    o = np.lexsort((dist, kp))
+    pt, kp = pt[o], kp[o]
+    first = np.r_[True, kp[1:] != kp[:-1]]
+    return np.stack([pt[first], kp[first]], axis=1).astype(np.int64)
+
+
+def _candidates_within(proj: np.ndarray, keypoints: np.ndarray, radius: float,
+                       kp_taken: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Every (map point, keypoint) pair with the keypoint within ``radius`` pixels of the projection
+    ``proj`` (M, 2) and not ``kp_taken``: ((K,) int64 map point indices, (K,) int64 keypoint indices)."""
     # keypoints bucketed in square cells of side `radius`: a point's candidates lie in its 3x3 cells. Two
     # empty cells around the keypoints: any projection with candidates falls inside the grid. (x and y are
     # kept apart: gathering 1-D arrays is faster than gathering rows of an (N, 2) array.)
@@ -212,22 +229,20 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     counts = count[ckey]
     total = int(counts.sum())
     if total == 0:
-        return np.empty((0, 2), np.int64)
+        return np.empty(0, np.int64), np.empty(0, np.int64)
     pt = np.repeat(np.repeat(pts, 9), counts)
     kp = order[np.repeat(start[ckey] - (np.cumsum(counts) - counts), counts) + np.arange(total)]
     dx, dy = kx[kp] - px[pt], ky[kp] - py[pt]
     ok = dx * dx + dy * dy <= radius * radius
     if kp_taken is not None:
         ok &= ~kp_taken[kp]
-    pt, kp = pt[ok], kp[ok]
-    if len(pt) == 0:
-        return np.empty((0, 2), np.int64)
-    dist = descriptor_distance(point_desc[pt], kp_desc[kp], binary)
-    ok = dist <= _max_distance(binary, cfg)
-    pt, kp, dist = pt[ok], kp[ok], dist[ok]
-    if len(pt) == 0:
-        return np.empty((0, 2), np.int64)
-    # best and second-best candidate per map point (ratio test)
+    return pt[ok], kp[ok]
+
+
+def _ratio_test(pt: np.ndarray, kp: np.ndarray, dist: np.ndarray, ratio: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The best candidate (pt, kp, dist) of each map point ``pt``, kept when its descriptor distance is below
+    ``ratio`` x that of the second best (Lowe's ratio test) or when it is the only candidate."""
     o = np.lexsort((dist, pt))
     pt, kp, dist = pt[o], kp[o], dist[o]
     first = np.r_[True, pt[1:] != pt[:-1]]
@@ -235,15 +250,8 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     has_second = np.r_[idx_first[1:], len(pt)] - idx_first > 1
     second = np.full(len(idx_first), np.inf, np.float32)
     second[has_second] = dist[idx_first[has_second] + 1]
-    best = idx_first[(dist[idx_first] < cfg.ratio * second) | ~has_second]
-    pt, kp, dist = pt[best], kp[best], dist[best]
-    if len(pt) == 0:
-        return np.empty((0, 2), np.int64)
-    # one map point per keypoint: keep the closest descriptor
-    o = np.lexsort((dist, kp))
-    pt, kp = pt[o], kp[o]
-    first = np.r_[True, kp[1:] != kp[:-1]]
-    return np.stack([pt[first], kp[first]], axis=1).astype(np.int64)
+    best = idx_first[(dist[idx_first] < ratio * second) | ~has_second]
+    return pt[best], kp[best], dist[best]
 
 
 @dataclass(frozen=True, eq=False)
@@ -271,8 +279,6 @@ class FrameFeatures:
 def image_signature(gray: np.ndarray, size: tuple[int, int] = (32, 24)) -> np.ndarray:
     """Global signature of an image for place recognition: the (w x h) area-downsampled grey image,
     blurred, zero-mean and unit-norm, as (w*h,) float32. Similar views have a dot product near 1."""
-    import cv2
-
     small = cv2.resize(gray, size, interpolation=cv2.INTER_AREA).astype(np.float32)
     small = cv2.GaussianBlur(small, (3, 3), 0).ravel()
     small -= small.mean()

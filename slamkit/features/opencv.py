@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from .base import Features, register_extractor
@@ -17,8 +18,6 @@ def _grid_cap(kps, n_cells: tuple[int, int], shape: tuple[int, int], total: int)
     h, w = shape
     gx, gy = n_cells
     per_cell = int(np.ceil(total / (gx * gy)))
-    import cv2
-
     xy = cv2.KeyPoint_convert(kps).reshape(-1, 2)
     resp = np.fromiter((k.response for k in kps), np.float32, len(kps))
     cell = np.minimum((xy[:, 1] * gy / h).astype(np.int64), gy - 1) * gx + np.minimum(
@@ -55,8 +54,6 @@ class OrbExtractor:
     name: str = "orb"
 
     def __post_init__(self) -> None:
-        import cv2
-
         self._orb = cv2.ORB_create(nfeatures=int(self.num_features * self.oversample),
                                    scaleFactor=self.scale_factor, nlevels=self.num_levels,
                                    fastThreshold=self.fast_threshold, edgeThreshold=19, patchSize=31)
@@ -78,8 +75,6 @@ class SiftExtractor:
     name: str = "sift"
 
     def __post_init__(self) -> None:
-        import cv2
-
         self._sift = cv2.SIFT_create(nfeatures=self.num_features, contrastThreshold=self.contrast_threshold)
 
     def extract(self, gray: np.ndarray) -> Features:
@@ -95,8 +90,6 @@ def _to_features(kps, desc, binary: bool, shape: tuple[int, ...]) -> Features:
         d = 32 if binary else 128
         return Features(np.empty((0, 2)), np.empty((0, d), np.uint8 if binary else np.float32),
                         np.empty(0, np.float32), binary, np.empty(0, np.float32), size)
-    import cv2
-
     xy = cv2.KeyPoint_convert(kps).reshape(-1, 2).astype(np.float64)
     scores = np.fromiter((k.response for k in kps), np.float32, len(kps))
     sizes = np.fromiter((k.size for k in kps), np.float32, len(kps))

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
 
+import cv2
 import numpy as np
 
 from ..camera import Intrinsics
@@ -90,8 +91,6 @@ class FrameSource:
 
 def to_gray_and_rgb(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """uint8 grey (H, W) or BGR(A) (H, W, 3|4) -> (grey (H, W), RGB (H, W, 3)); 16-bit is scaled to 8-bit."""
-    import cv2
-
     if image.dtype == np.uint16:
         image = (image >> 8).astype(np.uint8)
     if image.ndim == 2:
@@ -103,8 +102,6 @@ def to_gray_and_rgb(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def read_image(path: Path) -> np.ndarray:
     """Decode an image file with OpenCV; :class:`ImageReadError` names the file when it fails."""
-    import cv2
-
     if not path.is_file():
         raise ImageReadError(path, "file does not exist")
     try:

@@ -29,8 +29,8 @@ from ..errors import AssociationError, CalibrationError, ConfigError, FormatErro
 from ..geometry import pose_from_tum
 from .base import ImageListSource, select
 from .folder import image_size, resolve_camera
+from .groundtruth import associate_nearest
 from .textfiles import check_finite, check_increasing, parse_rows, require_path, to_float, to_int, to_str
-from .tum import associate_nearest
 
 
 def to_ns(text: str) -> int:

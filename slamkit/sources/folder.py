@@ -17,6 +17,7 @@ import numpy as np
 from ..camera import Intrinsics
 from ..errors import CalibrationError, ConfigError, SourceError
 from .base import ImageListSource, read_image, select
+from .groundtruth import associate_nearest, read_tum_trajectory
 from .textfiles import require_path
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm", ".pnm")
@@ -173,8 +174,6 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | None = None, f
     timestamps = keep / fps
     gt = None
     if groundtruth is not None:
-        from .tum import associate_nearest, read_tum_trajectory
-
         gt_t, gt_poses = read_tum_trajectory(groundtruth)
         match = associate_nearest(timestamps, gt_t, max_dt)
         gt = np.full((len(keep), 4, 4), np.nan)

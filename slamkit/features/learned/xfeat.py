@@ -12,6 +12,8 @@ keypoint"), which a softmax turns into a full-resolution keypoint heatmap.
 
 from __future__ import annotations
 
+import copy
+
 import cv2
 import numpy as np
 import torch
@@ -87,8 +89,6 @@ class XFeatModel(nn.Module):
 def fuse_batchnorm(net: nn.Module) -> nn.Module:
     """A copy of ``net`` for inference in which every Conv2d -> BatchNorm2d pair of a :class:`BasicLayer`
     is one Conv2d with bias (w' = w / sqrt(var + eps), b' = -mean / sqrt(var + eps)); ``net`` is unchanged."""
-    import copy
-
     net = copy.deepcopy(net).eval()
     for m in net.modules():
         if isinstance(m, BasicLayer):
@@ -145,26 +145,17 @@ class XFeatExtractor:
     The image is resized to multiples of 32 (as upstream; keypoints are scaled back), keypoints are the
     5x5 local maxima of the heatmap above ``detection_threshold``, scored heatmap x reliability, and
     ``num_features`` are kept: with ``grid`` (default) the best of each cell of an 8x6 grid first, then the
-    best of the rest (as slamkit's ORB; on 7-Scenes this posed every frame and lowered the ATE), else
-    simply the best (upstream XFeat).
-
-    ``scales``: an image pyramid, as ORB's, e.g. ``(1.0, 0.75, 0.5625)``: each level keeps a share of
-    ``num_features`` proportional to its area, and the levels' keypoints are returned one level after the
-    other, finest first, each sorted by score (where two levels detect the very same position, the finer
-    level's). The default ``(1.0,)`` is upstream XFeat's single scale: a map point then stops matching once
-    the camera has moved closer or away, and the map's scale drifts more than ORB's. On 7-Scenes (600
-    frames) that pyramid gave 3.13 cm (mean of seeds 0-9) against 3.64 cm single-scale (seeds 0-2), ORB
-    2.91 cm, but cost 60 ms more CPU per frame (129 against 69 ms on one core), over the 0.2 s per frame
-    budget: not the default.
+    best of the rest (as slamkit's ORB, so that keypoints spread over the image), else simply the best
+    (upstream XFeat). One scale only, as upstream: an image pyramid was measured no better in SLAM
+    (``benchmarks/README.md``, "Feature pipelines") and was removed.
 
     ``subpixel`` (default): each keypoint moved to the vertex of the parabola through its heatmap peak and
-    the two neighbours, per axis (:func:`subpixel_offsets`). On 7-Scenes (600 frames, seeds 0-5, session 7)
-    it lowered XFeat's ATE from 3.01 to 2.90 cm (five seeds of six lower), at no measurable cost.
+    the two neighbours, per axis (:func:`subpixel_offsets`), for more precise keypoints at no measurable cost.
 
-    Speed on one CPU core: with ``fuse`` (default) inference runs a copy of the network whose batch norms
-    are folded into the convolutions, in channels-last layout (~25 % less CPU; outputs equal to ~1e-5, so
-    keypoints whose scores tie to that precision may swap places in the order); the 5x5 non-maximum
-    suppression is OpenCV's dilation (~0.2 ms instead of ~10 ms for ``max_pool2d`` at 640x480, same result).
+    With ``fuse`` (default) inference runs a copy of the network whose batch norms are folded into the
+    convolutions, in channels-last layout (less CPU; outputs equal to ~1e-5, so keypoints whose scores tie
+    to that precision may swap places in the order); the 5x5 non-maximum suppression is OpenCV's dilation
+    (same result as ``max_pool2d``, much faster on the CPU).
     """
 
     name = "xfeat"
@@ -177,7 +168,6 @@ class XFeatExtractor:
         "weights_dir": None,
         "fuse": True,
         "subpixel": True,
-        "scales": (1.0,),
     }
 
     def __init__(self, **conf):
@@ -193,26 +183,11 @@ class XFeatExtractor:
 
     @torch.inference_mode()
     def detect_and_compute(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """image [1 x 1 x H x W] -> keypoints [N x 2] pixels (x, y), descriptors [N x 64], scores [N], over
-        the levels of ``scales`` (see the class docstring)."""
-        scales = [float(x) for x in self.conf["scales"]]
-        shares = np.array([x * x for x in scales]) / sum(x * x for x in scales)
-        counts = np.floor(shares * self.num_features).astype(int)
-        counts[0] += self.num_features - counts.sum()
-        out = [self._detect_and_compute(image, x, int(n)) for x, n in zip(scales, counts)]
-        if len(out) == 1:
-            return out[0][:3]
-        xy, desc, scores, peaks = (torch.cat(parts) for parts in zip(*out))
-        # a heatmap peak two levels both detect (their pixel grids coincide there): the finer level's keypoint
-        _, first = np.unique(np.round(peaks.numpy(), 3), axis=0, return_index=True)
-        keep = torch.from_numpy(np.sort(first))
-        return xy[keep], desc[keep], scores[keep]
-
-    def _detect_and_compute(self, image: torch.Tensor, scale: float, num_features: int):
+        """image [1 x 1 x H x W] -> keypoints [N x 2] pixels (x, y), descriptors [N x 64], scores [N]."""
         H0, W0 = image.shape[-2:]
-        H, W = (int(H0 * scale) // 32) * 32, (int(W0 * scale) // 32) * 32
+        H, W = (H0 // 32) * 32, (W0 // 32) * 32
         if (H, W) != (H0, W0):
-            image = F.interpolate(image, (H, W), mode="bilinear", align_corners=False, antialias=scale < 1)
+            image = F.interpolate(image, (H, W), mode="bilinear", align_corners=False)
         if self.conf["fuse"]:
             image = image.contiguous(memory_format=torch.channels_last)
         feats, logits, reliability = self.infer(image)
@@ -225,16 +200,14 @@ class XFeatExtractor:
         scores = torch.from_numpy(heat[yx[:, 0].numpy(), yx[:, 1].numpy()]) * sample(reliability, xy, (H, W),
                                                                                       "bilinear")[:, 0]
         if self.conf["grid"]:
-            keep = grid_cap(xy, scores, (H, W), num_features)
+            keep = grid_cap(xy, scores, (H, W), self.num_features)
         else:
-            keep = torch.argsort(scores, descending=True)[:num_features]
+            keep = torch.argsort(scores, descending=True)[:self.num_features]
         xy, scores = xy[keep], scores[keep]
-        to_input = torch.tensor([W0 / W, H0 / H], dtype=xy.dtype)
-        peaks = xy * to_input  # the heatmap peaks (pixel centres), in input pixels
         if self.conf["subpixel"]:
             xy = xy + torch.from_numpy(subpixel_offsets(heat, yx[keep].numpy()))
         desc = F.normalize(sample(F.normalize(feats, dim=1), xy, (H, W), "bicubic"), dim=-1)
-        return xy * to_input, desc, scores, peaks
+        return xy * torch.tensor([W0 / W, H0 / H], dtype=xy.dtype), desc, scores
 
     def extract(self, gray: np.ndarray) -> Features:
         """gray (H, W) uint8 -> Features: keypoints (N, 2) float64 px, descriptors (N, 64) float32 unit L2,
