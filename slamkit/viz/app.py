@@ -3,7 +3,8 @@
 :class:`SlamApp` owns a :class:`~slamkit.pipeline.Slam` and a :class:`~slamkit.viz.meshcat_view.MapView`.
 Widgets never touch the running pipeline's configuration: they edit a copy, shown as *pending* until
 **Reset** starts over with it. Buttons call only pipeline methods (``step``, ``reset``, ``save``) and the
-views' drawing methods.
+views' drawing methods. The widgets and their layout are built by :class:`~slamkit.viz.app_widgets.AppWidgets`;
+this module is what they do.
 
 - **Step** processes one frame; **Run** steps until paused or done in an asyncio task that yields to the
   kernel after every frame (``await asyncio.sleep(0)``), so the notebook and the Pause button stay live;
