@@ -9,41 +9,46 @@ zmq only (not slamkit: starting it stays fast).
 
 from __future__ import annotations
 
+import argparse
 import os
 import warnings
+
+import tornado.httpserver
+import tornado.ioloop
+import tornado.netutil
+import zmq
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from meshcat.servers.zmqserver import ZMQWebSocketBridge
 
 HOST = "127.0.0.1"
 """The only address the server listens on."""
 
 
+class LoopbackBridge(ZMQWebSocketBridge):
+    """meshcat's bridge with both sockets on 127.0.0.1 and OS-chosen ports."""
+
+    def setup_zmq(self, url):
+        socket, stream, _ = super().setup_zmq(url)
+        return socket, stream, socket.getsockopt_string(zmq.LAST_ENDPOINT)
+
+    def make_app(self):
+        app = super().make_app()
+
+        def listen(port, **kwargs):
+            sockets = tornado.netutil.bind_sockets(port, address=HOST)
+            server = tornado.httpserver.HTTPServer(app, **kwargs)
+            server.add_sockets(sockets)
+            self.bound_port = sockets[0].getsockname()[1]
+            return server
+
+        app.listen = listen
+        return app
+
+
 def _serve(parent_pid: int | None) -> None:
     warnings.simplefilter("ignore", DeprecationWarning)
-    import tornado.httpserver
-    import tornado.ioloop
-    import tornado.netutil
-    import zmq
-    from meshcat.servers.zmqserver import ZMQWebSocketBridge
-
-    class LoopbackBridge(ZMQWebSocketBridge):
-        """meshcat's bridge with both sockets on 127.0.0.1 and OS-chosen ports."""
-
-        def setup_zmq(self, url):
-            socket, stream, _ = super().setup_zmq(url)
-            return socket, stream, socket.getsockopt_string(zmq.LAST_ENDPOINT)
-
-        def make_app(self):
-            app = super().make_app()
-
-            def listen(port, **kwargs):
-                sockets = tornado.netutil.bind_sockets(port, address=HOST)
-                server = tornado.httpserver.HTTPServer(app, **kwargs)
-                server.add_sockets(sockets)
-                self.bound_port = sockets[0].getsockname()[1]
-                return server
-
-            app.listen = listen
-            return app
-
     bridge = LoopbackBridge(zmq_url=f"tcp://{HOST}:*", host=HOST, port=0)
     bridge.fileserver_port = bridge.bound_port
     bridge.web_url = f"http://{HOST}:{bridge.bound_port}/static/"
@@ -62,8 +67,6 @@ def _serve(parent_pid: int | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    import argparse
-
     parser = argparse.ArgumentParser(description="meshcat server on 127.0.0.1 (free ports)")
     parser.add_argument("--parent-pid", type=int, default=None,
                         help="exit when this process is no longer the parent")

@@ -3,7 +3,8 @@
 :class:`SlamApp` owns a :class:`~slamkit.pipeline.Slam` and a :class:`~slamkit.viz.meshcat_view.MapView`.
 Widgets never touch the running pipeline's configuration: they edit a copy, shown as *pending* until
 **Reset** starts over with it. Buttons call only pipeline methods (``step``, ``reset``, ``save``) and the
-views' drawing methods.
+views' drawing methods. The widgets and their layout are built by :class:`~slamkit.viz.app_widgets.AppWidgets`;
+this module is what they do.
 
 - **Step** processes one frame; **Run** steps until paused or done in an asyncio task that yields to the
   kernel after every frame (``await asyncio.sleep(0)``), so the notebook and the Pause button stay live;
@@ -21,74 +22,28 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import html
 import math
 import traceback
 from pathlib import Path
 
-import ipywidgets as W
 import numpy as np
 
-from ..config import SlamConfig, feature_pipeline_status
+from ..config import SlamConfig
 from ..errors import SlamkitError
 from ..pipeline import Slam, StepResult
 from ..sources import open_source
 from . import frame_view as fv
-from .meshcat_view import MapView, ViewSettings
+from .app_widgets import LABELS, AppWidgets, config_values
+from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
+from .meshcat_view import MapView
+from .settings import ViewSettings
 
 DEFAULT_SOURCE = "default"
 """The embedded synthetic sequence (exact ground truth)."""
 
-_LABELS = {
-    "source": "source",
-    "frame_skip": "frame skip",
-    "max_frames": "max frames",
-    "init_frames": "initialization frames",
-    "flow_threshold": "flow threshold",
-    "min_tracked_matches": "min tracked matches",
-    "features": "features",
-}
 
-
-def feature_options(config: SlamConfig) -> tuple[list[str], dict[str, str]]:
-    """The features dropdown: the feature pipelines that can run here (``orb``, ``sift``, and ``xfeat``,
-    ``xfeat-lighterglue``, ``aliked-lightglue``, ``superpoint-superglue`` when the learned extra and their
-    weight files are there), plus the config's own; and the others with why not."""
-    status = feature_pipeline_status(config.weights_dir)
-    options = [name for name, why in status.items() if why is None]
-    if config.feature_pipeline not in options:
-        options.append(config.feature_pipeline)
-    return options, {name: why for name, why in status.items() if why is not None}
-
-
-def _unavailable_html(unavailable: dict[str, str]) -> str:
-    import html
-
-    if not unavailable:
-        return ""
-    from ..features.learned import INSTALL_HINT, torch_available
-
-    if not torch_available():
-        head = f"learned features ({', '.join(unavailable)}): {INSTALL_HINT}"
-        return f'<span class="slamkit-features-note" style="color:#666">{html.escape(head)}</span>'
-    items = "".join(f"<li><b>{html.escape(k)}</b>: {html.escape(v)}</li>" for k, v in unavailable.items())
-    return (f'<details class="slamkit-features-note" style="color:#666"><summary>not available here: '
-            f'{html.escape(", ".join(unavailable))}</summary><ul>{items}</ul></details>')
-
-
-def _config_values(config: SlamConfig, source_len: int) -> dict:
-    """The values the controls show for a config."""
-    n_max = max(1, math.ceil(source_len / config.frame_skip))
-    return {
-        "frame_skip": config.frame_skip,
-        "max_frames": min(config.max_frames or n_max, n_max),
-        "init_frames": config.initializer.init_frames,
-        "flow_threshold": config.keyframes.flow_threshold,
-        "min_tracked_matches": config.keyframes.min_tracked_matches,
-        "features": config.feature_pipeline,
-    }
-
-
-class SlamApp:
+class SlamApp(AppWidgets):
     """Step-through SLAM in a notebook: controls, 3D map (meshcat), frame view and summary.
 
     source: ``"default"`` (embedded sequence) or a dataset path / spec for ``open_source``; config: the
@@ -114,7 +69,9 @@ class SlamApp:
         self._showing_run: Path | None = None
         self.last_error: str | None = None
         """The traceback of the last error shown in the status line."""
-        self._build_widgets(out_dir)
+        self._build_widgets(self.slam.config, self.source_spec, len(self.slam.source), out_dir, self.view.settings,
+                            self.view.iframe_html(self.map_height))
+        self._connect()
         self._refresh_all()
 
     # ------------------------------------------------------------------ sources
@@ -124,121 +81,8 @@ class SlamApp:
         return self._sources[spec]
 
     # ------------------------------------------------------------------ widgets
-    def _build_widgets(self, out_dir) -> None:
-        cfg = self.slam.config
-        vals = _config_values(cfg, len(self.slam.source))
-        style = {"description_width": "150px"}
-        wide = W.Layout(width="420px")
-        self.w_source = W.Text(value=self.source_spec, description="data source", style=style, layout=wide,
-                               placeholder="default, or a dataset folder / video path", continuous_update=False)
-        self.w_default = W.Button(description="default sequence", tooltip="the embedded synthetic sequence",
-                                  layout=W.Layout(width="140px"))
-        self.w_skip = W.IntSlider(value=vals["frame_skip"], min=1, max=10, description="frame skip", style=style,
-                                  layout=wide, continuous_update=False)
-        self.w_max = W.IntSlider(value=vals["max_frames"], min=1, max=max(1, math.ceil(len(self.slam.source)
-                                                                                     / cfg.frame_skip)),
-                                 description="max frames", style=style, layout=wide, continuous_update=False)
-        self.w_init = W.IntSlider(value=vals["init_frames"], min=2, max=60, description="initialization frames",
-                                  style=style, layout=wide, continuous_update=False)
-        self.w_flow = W.FloatSlider(value=vals["flow_threshold"], min=0.0, max=0.3, step=0.005,
-                                    readout_format=".3f", description="flow threshold", style=style, layout=wide,
-                                    continuous_update=False)
-        self.w_matches = W.IntSlider(value=vals["min_tracked_matches"], min=5, max=500,
-                                     description="min tracked matches", style=style, layout=wide,
-                                     continuous_update=False)
-        options, unavailable = feature_options(cfg)
-        self.w_features = W.Dropdown(options=options, value=vals["features"], description="features", style=style,
-                                     layout=wide)
-        self.w_features_note = W.HTML(_unavailable_html(unavailable), layout=W.Layout(max_width="640px"))
-        self.w_out = W.Text(value=str(out_dir), description="output folder", style=style, layout=wide)
-        bl = W.Layout(width="96px")
-        self.b_step = W.Button(description="Step", tooltip="process one frame", icon="step-forward", layout=bl)
-        self.b_run = W.Button(description="Run", tooltip="run until paused or done", icon="play", layout=bl,
-                              button_style="success")
-        self.b_reset = W.Button(description="Reset", tooltip="apply the settings and start over", icon="refresh",
-                                layout=bl, button_style="warning")
-        self.b_save = W.Button(description="Save", tooltip="save map and trajectory to the output folder",
-                               icon="save", layout=bl)
-        self.b_load = W.Button(description="Load", tooltip="show the run saved in the output folder",
-                               icon="folder-open", layout=bl)
-        self.b_html = W.Button(description="Export HTML", tooltip="the 3D view as one HTML file (output folder)",
-                               icon="file", layout=W.Layout(width="120px"))
-        self.w_pending = W.HTML(layout=W.Layout(min_height="22px"))
-        self.w_status = W.HTML(layout=W.Layout(min_height="22px"))
-
-        # visualization settings
-        vs = self.view.settings
-        vstyle = {"description_width": "110px"}
-        vl = W.Layout(width="330px")
-        self.v_bg = W.ColorPicker(value=vs.background, description="background", concise=False, style=vstyle,
-                                  layout=vl)
-        self.v_path = W.Checkbox(value=vs.show_path, description="path", indent=False, layout=W.Layout(width="80px"))
-        self.v_kf = W.Checkbox(value=vs.show_keyframes, description="keyframes", indent=False,
-                               layout=W.Layout(width="100px"))
-        self.v_cur = W.Checkbox(value=vs.show_current, description="current frame", indent=False,
-                                layout=W.Layout(width="120px"))
-        self.v_pts = W.Checkbox(value=vs.show_points, description="points", indent=False,
-                                layout=W.Layout(width="80px"))
-        self.v_dirs = W.Checkbox(value=vs.show_directions, description="viewing directions", indent=False,
-                                 layout=W.Layout(width="150px"))
-        self.v_fscale = W.FloatLogSlider(value=vs.frustum_scale, base=10, min=-1, max=1, step=0.05,
-                                         description="frustum scale", style=vstyle, layout=vl,
-                                         continuous_update=False)
-        self.v_psize = W.FloatLogSlider(value=vs.point_size, base=10, min=-1, max=1, step=0.05,
-                                        description="point size", style=vstyle, layout=vl, continuous_update=False)
-        self.v_track = W.IntSlider(value=-1, min=-1, max=0, description="track point id", style=vstyle, layout=vl,
-                                   continuous_update=False)
-        self.v_track_info = W.HTML()
-        self.v_clip_on = W.Checkbox(value=False, description="clip to keyframes", indent=False,
-                                    layout=W.Layout(width="140px"))
-        self.v_clip = W.IntRangeSlider(value=(0, 1), min=0, max=1, description="", layout=W.Layout(width="300px"),
-                                       continuous_update=False)
-        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="130px"))
-
-        # frame view
-        self.f_kf = W.Image(format="jpeg", layout=W.Layout(width="240px"))
-        self.f_kf_label = W.HTML()
-        self.f_cur = W.Image(format="jpeg", layout=W.Layout(width=f"{self.frame_width}px"))
-        self.f_step = W.HTML()
-        self.f_summary = W.HTML()
-        self.m_kf1 = W.Dropdown(description="keyframes", options=[], layout=W.Layout(width="200px"),
-                                style={"description_width": "70px"})
-        self.m_kf2 = W.Dropdown(options=[], layout=W.Layout(width="110px"))
-        self.b_matches = W.Button(description="Draw matches", icon="random", layout=W.Layout(width="130px"))
-        self.m_image = W.Image(format="jpeg", layout=W.Layout(width="640px"))
-        self.m_label = W.HTML()
-
-        self.map_html = W.HTML(self.view.iframe_html(self.map_height), layout=W.Layout(width="100%"))
-
-        controls = W.VBox([
-            W.HBox([self.w_source, self.w_default]), self.w_skip, self.w_max, self.w_init, self.w_flow,
-            self.w_matches, self.w_features, self.w_features_note, self.w_out,
-            W.HBox([self.b_step, self.b_run, self.b_reset, self.b_save, self.b_load, self.b_html]),
-            self.w_pending, self.w_status,
-        ])
-        settings = W.VBox([
-            W.HBox([self.v_bg, self.b_camera]),
-            W.HBox([self.v_pts, self.v_kf, self.v_path, self.v_cur, self.v_dirs]),
-            W.HBox([self.v_fscale, self.v_psize]),
-            W.HBox([self.v_track, self.v_track_info]),
-            W.HBox([self.v_clip_on, self.v_clip]),
-        ])
-        frame = W.VBox([W.HTML("<b>last keyframe</b>"), self.f_kf, self.f_kf_label, W.HTML("<b>current frame</b>"),
-                        self.f_cur], layout=W.Layout(width=f"{self.frame_width + 20}px"))
-        map_box = W.VBox([self.map_html, settings], layout=W.Layout(flex="1 1 auto", min_width="420px"))
-        self.widget = W.VBox([
-            controls,
-            W.HBox([map_box, frame]),
-            self.f_step, self.f_summary,
-            W.HBox([self.m_kf1, self.m_kf2, self.b_matches]), self.m_label, self.m_image,
-        ])
-        self.widget.add_class("slamkit-app")
-        for w, cls in ((self.b_step, "slamkit-step-button"), (self.b_run, "slamkit-run-button"),
-                       (self.b_reset, "slamkit-reset-button"), (self.w_flow, "slamkit-flow-threshold"),
-                       (self.w_pending, "slamkit-pending"), (self.map_html, "slamkit-map-view")):
-            w.add_class(cls)
-
-        # events
+    def _connect(self) -> None:
+        """Buttons and controls to the app's actions (errors go to the status line)."""
         self.b_step.on_click(lambda _: self._guard(self.step))
         self.b_run.on_click(lambda _: self._guard(self.toggle_run))
         self.b_reset.on_click(lambda _: self._guard(self.reset))
@@ -256,11 +100,6 @@ class SlamApp:
                   self.v_psize, self.v_track, self.v_clip_on, self.v_clip):
             w.observe(lambda _: self._guard(self._apply_view_settings), "value")
 
-    def _ipython_display_(self) -> None:
-        from IPython.display import display
-
-        display(self.widget)
-
     def _guard(self, fn, *args):
         """Run a widget action; show errors in the status line instead of losing them in the kernel log."""
         try:
@@ -272,8 +111,6 @@ class SlamApp:
             self.last_error = traceback.format_exc()
 
     def _status(self, text: str, color: str = "#333") -> None:
-        import html
-
         self.w_status.value = f'<span style="color:{color}">{html.escape(text)}</span>'
 
     # ------------------------------------------------------------------ pending settings
@@ -297,7 +134,7 @@ class SlamApp:
             return dict(out, invalid=(str(e), ""))
         n = len(self._open(self.w_source.value.strip() or DEFAULT_SOURCE)) if "source" in out else len(
             self.slam.source)
-        now, new = _config_values(self.slam.config, len(self.slam.source)), _config_values(pending, n)
+        now, new = config_values(self.slam.config, len(self.slam.source)), config_values(pending, n)
         for k in now:
             if now[k] != new[k]:
                 out[k] = (now[k], new[k])
@@ -308,7 +145,7 @@ class SlamApp:
         if not changes:
             self.w_pending.value = ""
             return
-        items = ", ".join(f"{_LABELS.get(k, k)} {a} → {b}" for k, (a, b) in changes.items())
+        items = ", ".join(f"{LABELS.get(k, k)} {a} → {b}" for k, (a, b) in changes.items())
         when = " The running pipeline keeps its settings until then." if self.slam.records else ""
         self.w_pending.value = (f'<span class="slamkit-pending-text" style="color:#b35900">⚠ changed: {items} '
                                 f'— takes effect on Reset (press <b>Reset</b> to apply and start over).{when}</span>')
@@ -481,10 +318,7 @@ class SlamApp:
         self.pause()
         if self._own_view:
             self.view.close()
-        for w in list(vars(self).values()):  # every widget of the app (their comms), containers last
-            if isinstance(w, W.Widget) and not isinstance(w, W.Box):
-                w.close()
-        _close_boxes(self.widget)
+        self._close_widgets()
 
     # ------------------------------------------------------------------ views
     def _reprojection_error(self) -> float:
@@ -613,12 +447,6 @@ class SlamApp:
                               f"{len(pairs)} keypoints observe the same 3D points"
                               + (" (300 drawn)" if len(pairs) > 300 else ""))
         return img
-
-
-def _close_boxes(widget) -> None:
-    for child in getattr(widget, "children", ()):
-        _close_boxes(child)
-    widget.close()
 
 
 __all__ = ["SlamApp", "DEFAULT_SOURCE"]

@@ -30,8 +30,14 @@ import warnings
 import weakref
 from pathlib import Path
 
+import zmq
+
 from ..errors import SlamkitError
 from ._meshcat_server import HOST
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore", DeprecationWarning)
+    from meshcat.visualizer import ViewerWindow, Visualizer
 
 SERVER_SCRIPT = Path(__file__).with_name("_meshcat_server.py")
 """The server process's program (meshcat's tornado/zmq bridge on 127.0.0.1)."""
@@ -137,12 +143,6 @@ class MeshcatServer:
         """A ``meshcat.Visualizer`` connected to this server (its own zmq socket, closed with the server)."""
         if not self.alive:
             raise ViewerError("the meshcat server is stopped")
-        import zmq
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", DeprecationWarning)
-            from meshcat.visualizer import Visualizer, ViewerWindow
-
         # ViewerWindow.__init__ would ask the server for its URL and print it; set it up directly
         window = ViewerWindow.__new__(ViewerWindow)
         window.server_proc = None

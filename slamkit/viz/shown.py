@@ -1,0 +1,112 @@
+"""The map as the map view's scene shows it: the state the next snapshot is diffed against.
+
+:class:`ShownMap` holds what was last read and sent for one map — keyframe ids, times and poses, the
+camera path, the current frame, the points (a :class:`~slamkit.viz.diff.PointStore`), the last full
+observation lists of the keyframes and the display fit — and derives the geometry the scene draws from it
+(keyframe poses and centres, recency fractions, the keyframes and times inside a clip range, the fit).
+No meshcat and no server: the sender draws from it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from .diff import PointStore
+from .scene import Camera, compute_fit, time_fractions, world_from_cam
+
+
+class ShownMap:
+    """What the scene shows of one map (empty until the first update; a new map starts a new one)."""
+
+    def __init__(self) -> None:
+        self.key: Any = None
+        """Identity of the map shown (None: nothing shown)."""
+        self.reconstruction: pycolmap.Reconstruction | None = None
+        self.kf_ids = np.empty(0, np.int64)
+        """(K,) sorted keyframe image ids."""
+        self.kf_times = np.empty(0)
+        """(K,) keyframe timestamps, seconds."""
+        self.kf_pose = np.empty((0, 3, 4))
+        """(K, 3, 4) cam_from_world as last read."""
+        self.path_t = np.empty(0)
+        """(N,) seconds of the posed frames, in time order."""
+        self.path_c = np.empty((0, 3))
+        """(N, 3) world camera centres of the posed frames."""
+        self.current: np.ndarray | None = None
+        """(4, 4) world_from_cam of the current non-key frame, or None."""
+        self.points = PointStore()
+        self.observations: dict[int, np.ndarray] = {}
+        """Keyframe -> the point ids it observed when last read in full (to find deleted points)."""
+        self.fit: tuple[np.ndarray, float] | None = None
+        """(centre (3,), extent) of the display fit, map units."""
+        self.camera: Camera | None = None
+
+    @property
+    def map_extent(self) -> float:
+        """The fitted map's extent, map units (1 before the first fit)."""
+        return self.fit[1] if self.fit is not None else 1.0
+
+    def keep_observations(self, observers: dict[int, np.ndarray]) -> None:
+        """Remember complete observation lists; forget those of keyframes no longer in the map."""
+        self.observations.update(observers)
+        current_ids = set(self.kf_ids.tolist())
+        for k in [k for k in self.observations if k not in current_ids]:
+            del self.observations[k]
+
+    # ------------------------------------------------------------------ keyframes
+    def kf_world_from_cam(self) -> np.ndarray:
+        """(K, 4, 4) world_from_cam of the keyframes."""
+        return world_from_cam(self.kf_pose)
+
+    def kf_centers(self) -> np.ndarray:
+        """(K, 3) world centres of the keyframes."""
+        return self.kf_world_from_cam()[:, :3, 3] if len(self.kf_pose) else np.empty((0, 3))
+
+    def time_fractions(self, times: np.ndarray) -> np.ndarray:
+        """0 at the first keyframe, 1 at the last (path frames outside that span are clipped to 0 / 1)."""
+        return time_fractions(times, self.kf_times, self.path_t)
+
+    def clip_keyframes(self, clip: tuple[int, int] | None) -> np.ndarray:
+        """(K,) bool: the keyframes inside the clip range (all without one)."""
+        if clip is None:
+            return np.ones(len(self.kf_ids), bool)
+        return (self.kf_ids >= clip[0]) & (self.kf_ids <= clip[1])
+
+    def clip_times(self, clip: tuple[int, int] | None) -> tuple[float, float]:
+        """(first, last) timestamps of the keyframes inside the clip range, seconds (an empty interval
+        when none is; unbounded without a range)."""
+        if clip is None or len(self.kf_ids) == 0:
+            return -np.inf, np.inf
+        sel = self.clip_keyframes(clip)
+        if not sel.any():
+            return np.inf, -np.inf
+        t = self.kf_times[sel]
+        return float(t.min()), float(t.max())
+
+    # ------------------------------------------------------------------ display fit
+    def compute_fit(self) -> tuple[np.ndarray, float]:
+        """(centre (3,), extent) around the points, keyframe centres and path."""
+        pts = self.points.xyz[self.points.alive()].astype(np.float64)
+        return compute_fit(pts, self.kf_centers(), self.path_c)
+
+    def refit_needed(self, full: bool) -> bool | tuple[np.ndarray, float]:
+        """Whether the display fit no longer frames the map: none yet; or (every point read) the map's
+        extent changed by more than -40 % / +25 % or its centre moved by a quarter of it (growth, bundle
+        adjustment's normalization); or (incremental) a camera left the fitted box by 20 %.
+        Returns the new fit when it was computed."""
+        if self.fit is None:
+            return True
+        c, ext = self.fit
+        if full:
+            cand = self.compute_fit()
+            if not (0.6 * ext <= cand[1] <= 1.25 * ext) or np.abs(cand[0] - c).max() > 0.25 * ext:
+                return cand
+            return False
+        centres = np.concatenate([self.kf_centers(), self.path_c])
+        return bool(len(centres)) and bool(np.abs(centres - c).max() > 0.6 * ext)
+
+
+__all__ = ["ShownMap"]
