@@ -751,9 +751,10 @@ def _layouts(root: Path) -> dict[str, tuple[Path, Path]]:
         write_image(p, 0)
     (root / "video").mkdir()
     video = make_video(root / "video" / "clip.avi")
-    return {"folder": (folder, folder), "tum": (tum, tum), "kitti": (root / "kitti" / "sequences" / "03",
-            root / "kitti" / "sequences" / "03" / "image_0"), "euroc": (root / "euroc", root / "euroc" / "mav0" / "cam0"),
-            "7scenes": (root / "7scenes" / "seq-01", root / "7scenes" / "seq-01"), "video": (video, video.parent)}
+    kitti, scenes = root / "kitti" / "sequences" / "03", root / "7scenes" / "seq-01"
+    return {"folder": (folder, folder), "tum": (tum, tum), "kitti": (kitti, kitti / "image_0"),
+            "euroc": (root / "euroc", root / "euroc" / "mav0" / "cam0"), "7scenes": (scenes, scenes),
+            "video": (video, video.parent)}
 
 
 def test_every_layout_reads_camera_txt_and_camera_text_wins(tmp_path):

@@ -7,7 +7,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 
 from ..config import SlamConfig
 from ..errors import ConfigError, OutputError, SlamkitError
@@ -18,7 +17,7 @@ from .camera import ExportCamera
 from .images import ProgressCallback, file_name, read_gray, reopen_source, write_image
 from .model import PointDescriptors, build_model, keyframe_descriptors, match_frame, select_frames
 from .nerfstudio import PLY_NAME, write_ply, write_transforms
-from .runfolder import PosedFrame, RunFolderError, SavedRun, load_run
+from .runfolder import PosedFrame, SavedRun, load_run
 
 FORMATS = ("colmap", "nerfstudio")
 MARKER = ".slamkit-export"
