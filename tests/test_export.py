@@ -20,7 +20,7 @@ import pytest
 
 import slamkit
 from slamkit import Slam, SlamConfig, open_source
-from slamkit.errors import ConfigError, OutputError
+from slamkit.errors import ConfigError, OutputError, SlamkitError
 from slamkit.exporter import MARKER, RunFolderError, add_export_parser, export
 from slamkit.exporter.nerfstudio import OPENGL_FROM_OPENCV
 from slamkit.geometry import tum_from_pose
@@ -188,6 +188,15 @@ def test_run_folder_without_model_and_bad_arguments(run_dir, tmp_path):
     export(run_dir, tmp_path / "again")
     export(run_dir, tmp_path / "again", format="nerfstudio")  # a previous export is replaced
     assert (tmp_path / "again" / MARKER).is_file() and not (tmp_path / "again" / "sparse").exists()
+
+
+def test_run_folder_without_session_needs_the_source(run_dir, tmp_path):
+    bare = tmp_path / "bare"
+    shutil.copytree(run_dir, bare, ignore=shutil.ignore_patterns("session"))
+    with pytest.raises(SlamkitError, match="pass source="):
+        export(bare, tmp_path / "out")
+    res = export(bare, tmp_path / "out", source=open_source("default"))
+    assert res.num_images == pycolmap.Reconstruction(str(run_dir / "sparse")).num_reg_images()
 
 
 def test_cli_subcommand_handler(run_dir, tmp_path, capsys):

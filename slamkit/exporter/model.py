@@ -105,7 +105,7 @@ def match_frame(points: PointDescriptors, frame: PosedFrame, features: Features,
 def build_model(run_model: pycolmap.Reconstruction, frames: list[PosedFrame], camera: ExportCamera,
                 names: dict[int, str], extra: dict[int, tuple[np.ndarray, np.ndarray]]) -> pycolmap.Reconstruction:
     """A new Reconstruction with ``camera`` and one registered image per frame (named ``names[index]``,
-    ids 1.. in order), the run's 3D points (ids, positions, colours, errors kept) with their keyframe
+    ids 1.. in order), the run's 3D points (ids, positions, colours kept) with their keyframe
     observations and the non-keyframe observations ``extra[index] = (undistorted pixels, point ids)``."""
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(camera.camera)
@@ -143,6 +143,5 @@ def build_model(run_model: pycolmap.Reconstruction, frames: list[PosedFrame], ca
             continue
         point = pycolmap.Point3D(xyz=p.xyz, color=p.color, error=p.error, track=track)
         rec.add_point3D_with_id(int(pid), point)
-    if tracks:
-        rec.update_point_3d_errors()
+    rec.update_point_3d_errors()  # in the exported camera's pixels
     return rec
