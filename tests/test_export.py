@@ -345,3 +345,28 @@ def test_tum_layout_with_another_name_runs_with_a_camera(tmp_path, how):
     traj = slam.trajectory()
     assert len(traj) >= 25
     assert slamkit.ate(source.ground_truth(), traj).rmse < 0.05 * traj.path_length
+
+
+def test_lens_with_k3_maps_pixels_and_images_consistently():
+    """TUM fr1's lens (k3 != 0): FULL_OPENCV when kept; after COLMAP's undistortion a blob drawn at a distorted
+    pixel lands where the exported pinhole camera puts that pixel's ray."""
+    from slamkit.exporter.camera import ExportCamera
+    from slamkit.sources.tum import TUM_CALIBRATIONS
+
+    fr1 = TUM_CALIBRATIONS["fr1"]
+    kept = ExportCamera.create(fr1)
+    assert kept.model_name == "FULL_OPENCV" and list(kept.camera.params[8:]) == [fr1.dist[4], 0.0, 0.0, 0.0]
+    rng = np.random.default_rng(0)
+    distorted = rng.uniform([60, 60], [580, 420], size=(50, 2))
+    np.testing.assert_allclose(kept.from_model(fr1.undistort_points(distorted)), distorted, atol=0.02)
+    flat = ExportCamera.create(fr1, undistort=True)
+    assert flat.model_name == "PINHOLE"
+    yy, xx = np.mgrid[0:480, 0:640]
+    for p in distorted[:5]:
+        blob = np.exp(-((xx - p[0]) ** 2 + (yy - p[1]) ** 2) / (2 * 2.0 ** 2))
+        rgb = np.repeat((255 * blob).astype(np.uint8)[..., None], 3, axis=2)
+        out = flat.undistort_image(rgb)[..., 0].astype(np.float64)
+        out[out < 20] = 0
+        gy, gx = np.mgrid[0:out.shape[0], 0:out.shape[1]]
+        centre = np.array([(gx * out).sum(), (gy * out).sum()]) / out.sum()
+        np.testing.assert_allclose(centre, flat.from_model(fr1.undistort_points(p[None]))[0], atol=0.15)
