@@ -56,28 +56,33 @@ def keyframe_descriptors(model: pycolmap.Reconstruction, image_id: int, features
 
 
 class PointDescriptors:
-    """Descriptors of the map points per keyframe, and the points' positions, for guided matching."""
+    """Descriptors of the map points per keyframe, and the points' positions, for guided matching.
 
-    def __init__(self, model: pycolmap.Reconstruction):
-        self.model = model
+    num_keyframes: how many keyframes nearest in time supply points (the tracker's local map holds a
+    keyframe and its 10 most covisible ones), which bounds the work per frame on long runs.
+    """
+
+    def __init__(self, model: pycolmap.Reconstruction, num_keyframes: int = 10):
         self.keyframes: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}  # image id -> (index, pids, desc)
         self.binary = True
+        self.num_keyframes = num_keyframes
+        self._ids = np.array(sorted(model.point3D_ids()), np.int64)
+        self._xyz = np.array([model.point3D(int(p)).xyz for p in self._ids], np.float64).reshape(-1, 3)
 
     def add(self, index: int, image_id: int, pids: np.ndarray, desc: np.ndarray, binary: bool) -> None:
         self.keyframes[image_id] = (index, pids, desc)
         self.binary = binary
 
     def nearest(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(point ids (M,), positions (M, 3), descriptors (M, D)): every point seen by a keyframe, with the
-        descriptor of the keyframe nearest to frame ``index``."""
-        order = sorted(self.keyframes.values(), key=lambda k: abs(k[0] - index))
+        """(point ids (M,), positions (M, 3), descriptors (M, D)): the points of the keyframes nearest to
+        frame ``index``, each with the descriptor of the nearest keyframe observing it."""
+        order = sorted(self.keyframes.values(), key=lambda k: abs(k[0] - index))[: self.num_keyframes]
         if not order:
             return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 32), np.uint8)
         pids = np.concatenate([k[1] for k in order])
         desc = np.concatenate([k[2] for k in order])
         pids, first = np.unique(pids, return_index=True)
-        xyz = np.array([self.model.point3D(int(p)).xyz for p in pids], np.float64).reshape(-1, 3)
-        return pids, xyz, desc[first]
+        return pids, self._xyz[np.searchsorted(self._ids, pids)], desc[first]
 
 
 def match_frame(points: PointDescriptors, frame: PosedFrame, features: Features, keypoints: np.ndarray,
