@@ -103,15 +103,15 @@ def _session(run_dir: Path) -> dict | None:
 
 
 def _camera(meta: dict | None, model: pycolmap.Reconstruction, source_camera: Intrinsics | None) -> Intrinsics:
-    """The images' intrinsics: the run's ``--camera`` or the source's, with the model camera's pinhole part."""
+    """The images' intrinsics: the run's ``--camera``, else the source's, with the model camera's pinhole part."""
     cam = model.camera(next(iter(model.cameras)))
-    if source_camera is not None:
+    text = ((meta or {}).get("config") or {}).get("camera") or ""
+    if text:
+        base = Intrinsics.parse(text, cam.width, cam.height)
+    elif source_camera is not None:
         base = source_camera
-    elif meta is not None and meta.get("source", {}).get("camera"):
+    elif meta is not None and (meta.get("source") or {}).get("camera"):
         base = Intrinsics.from_dict(meta["source"]["camera"])
-        text = meta.get("config", {}).get("camera") or ""
-        if text:
-            base = Intrinsics.parse(text, base.width, base.height)
     else:
         base = Intrinsics(cam.width, cam.height, *cam.params[:4])
     fx, fy, cx, cy = (float(v) for v in cam.params[:4])
