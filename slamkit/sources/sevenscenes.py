@@ -111,7 +111,8 @@ def open_sevenscenes(path: str | Path, *, seq: str | int | None = None,
     Args:
         path: a scene folder (holding ``seq-XX/``) or a sequence folder.
         seq: ``"seq-01"`` or ``1``; default the first sequence of the scene.
-        camera: override the intrinsics (default: ``camera-intrinsics.txt`` of the sequence or scene
+        camera: override the intrinsics (:class:`Intrinsics`, focal length or ``--camera`` text; default: a
+            ``camera.txt`` in the sequence folder, else ``camera-intrinsics.txt`` of the sequence or scene
             folder, else :data:`SEVENSCENES_NOMINAL`; no distortion).
         frame_skip, max_frames: keep every ``frame_skip``-th frame, at most ``max_frames``.
 
