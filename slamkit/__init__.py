@@ -11,6 +11,7 @@ from .config import PRESETS, SlamConfig
 from .errors import (AssociationError, CalibrationError, ConfigError, FormatError, ImageReadError, OutputError,
                      SlamkitError, SourceError)
 from .eval import ate, evaluate, rpe
+from .exporter import export
 from .features import available_extractors, register_extractor
 from .io import read_kitti, read_trajectory, read_tum, write_kitti, write_tum
 from .pipeline import Slam, StepResult
@@ -26,3 +27,4 @@ __all__ = [
     "SlamkitError", "SourceError", "ImageReadError", "FormatError", "CalibrationError", "AssociationError",
     "ConfigError", "OutputError", "__version__",
 ]
+__all__.append("export")

@@ -726,3 +726,81 @@ def test_real_video_with_frame_skip():
     later = src[5].gray.copy()
     first = src[0].gray.copy()  # re-seek backwards
     assert np.array_equal(src[5].gray, later) and first.shape == (375, 1242)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# calibration given before opening: camera= (a --camera text) and camera.txt (issue 21)
+# ---------------------------------------------------------------------------------------------------------
+CAMERA_TXT = "# fx fy cx cy k1 k2 p1 p2\n\n52.0, 53.0 30.5 22.5 -0.1 0.01 0.001 -0.002  # calibrated\n"
+TXT_CAM = Intrinsics(W, H, 52.0, 53.0, 30.5, 22.5, (-0.1, 0.01, 0.001, -0.002, 0.0))
+
+
+def _layouts(root: Path) -> dict[str, tuple[Path, Path]]:
+    """{layout: (path to open, folder where camera.txt goes)} for every file-based layout, 64x48 images."""
+    folder = root / "images"
+    for i in range(3):
+        write_image(folder / f"{i}.png", 10 * i)
+    tum = root / "my_recording"  # a TUM layout whose name says no freiburg sensor
+    make_tum(tum, n=3, gt=False, size=(W, H))
+    make_kitti(root / "kitti", n=3)
+    make_euroc(root / "euroc", n=3)
+    make_7scenes(root / "7scenes", n=2, seqs=("seq-01",), intrinsics=None, ext="png")
+    for p in (root / "7scenes" / "seq-01").glob("*.color.png"):  # 7-Scenes images are 640x480: make them W x H
+        write_image(p, 0)
+    (root / "video").mkdir()
+    video = make_video(root / "video" / "clip.avi")
+    kitti, scenes = root / "kitti" / "sequences" / "03", root / "7scenes" / "seq-01"
+    return {"folder": (folder, folder), "tum": (tum, tum), "kitti": (kitti, kitti / "image_0"),
+            "euroc": (root / "euroc", root / "euroc" / "mav0" / "cam0"), "7scenes": (scenes, scenes),
+            "video": (video, video.parent)}
+
+
+def test_every_layout_reads_camera_txt_and_camera_text_wins(tmp_path):
+    for layout, (path, calib_dir) in _layouts(tmp_path).items():
+        given = open_source(path, camera="40,41,30,20,0.05,0,0,0")
+        assert given.camera == Intrinsics(W, H, 40.0, 41.0, 30.0, 20.0, (0.05, 0, 0, 0, 0)), layout
+        assert open_source(path, camera="45").camera == Intrinsics.from_focal(W, H, 45.0), layout
+        (calib_dir / "camera.txt").write_text(CAMERA_TXT)
+        assert open_source(path).camera == TXT_CAM, layout
+        assert open_source(path, camera="40,41,30,20").camera.fx == 40.0, layout  # camera= before camera.txt
+        assert open_source(f"{layout}:{path}").camera == TXT_CAM, layout
+
+
+def test_tum_layout_without_sensor_name_opens_with_camera(tmp_path):
+    root = tmp_path / "converted_sequence"
+    make_tum(root, n=4, size=(W, H))
+    with pytest.raises(CalibrationError, match="freiburg"):
+        open_source(root)
+    src = open_source(root, camera="50,51,31.5,23.5")
+    assert src.camera == CAM and len(src) == 4 and src.gt_poses is not None
+    with pytest.raises(CalibrationError, match="640x480"):  # a sensor name is still the built-in calibration
+        open_source(root, camera="fr3")
+    (root / "camera.txt").write_text("50 51 31.5 23.5\n")
+    assert open_source(root).camera == CAM
+    assert open_source(root, camera="").camera == CAM  # SlamConfig.camera's default: no camera given
+    with pytest.raises(ConfigError, match="camera"):
+        open_source(root, camera="50,51,31.5")
+
+
+@pytest.mark.parametrize("content, line, match", [
+    ("50 51 31.5\n", 1, "3 numbers"),
+    ("# comment\n50 51 31.5 23.5 x 0 0 0\n", 2, "not a number"),
+    ("50 51 31.5 23.5\n50 51 31.5 23.5\n", 2, "exactly one line"),
+    ("# nothing\n", None, "exactly one line"),
+    ("50\n", 1, "got 1"),
+])
+def test_malformed_camera_txt_names_file_and_line(tmp_path, content, line, match):
+    folder = tmp_path / "images"
+    write_image(folder / "0.png")
+    (folder / "camera.txt").write_text(content)
+    with pytest.raises(FormatError, match=match) as info:
+        open_source(folder)
+    assert info.value.path == folder / "camera.txt" and info.value.line == line
+
+
+def test_camera_txt_for_another_image_size_is_calibration_error(tmp_path):
+    folder = tmp_path / "images"
+    write_image(folder / "0.png")
+    (folder / "camera.txt").write_text("500 500 320 240\n")
+    with pytest.raises(CalibrationError, match="camera.txt:1"):
+        open_source(folder)

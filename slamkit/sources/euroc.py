@@ -28,6 +28,7 @@ from ..camera import Intrinsics
 from ..errors import AssociationError, CalibrationError, ConfigError, FormatError, SourceError
 from ..geometry import pose_from_tum
 from .base import ImageListSource, select
+from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, resolve_camera
 from .groundtruth import associate_nearest
 from .textfiles import check_finite, check_increasing, parse_rows, require_path, to_float, to_int, to_str
@@ -172,7 +173,7 @@ def _mav0(root: Path) -> Path:
     raise SourceError(f"{root} is not an EuRoC sequence (no mav0/ and no cam0/data.csv)")
 
 
-def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | None = None,
+def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | float | str | None = None,
                max_dt: float = 0.02, min_gt_fraction: float = 0.5, frame_skip: int = 1,
                max_frames: int | None = None) -> ImageListSource:
     """Open an EuRoC MAV sequence.
@@ -180,7 +181,8 @@ def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | None
     Args:
         path: the sequence root (holding ``mav0/``) or ``mav0`` itself.
         cam: ``"cam0"`` (left) or ``"cam1"``.
-        camera: override the intrinsics of ``sensor.yaml``.
+        camera: override the intrinsics of ``sensor.yaml`` (:class:`Intrinsics`, focal length or ``--camera``
+            text); without it a ``camera.txt`` in the camera folder or its ``data/`` folder does.
         max_dt: largest |image time - ground-truth time| in seconds for an image to get a pose.
         min_gt_fraction: AssociationError when ground truth exists but fewer images than this get a pose.
         frame_skip, max_frames: keep every ``frame_skip``-th image, at most ``max_frames``.
@@ -206,6 +208,9 @@ def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | None
     sensor = read_euroc_sensor(yaml) if yaml.is_file() else None
     w, h = image_size(paths[keep[0]])
     where = str(paths[keep[0]])
+    calib = find_camera_txt(cam_dir, cam_dir / "data") if camera is None else None
+    if calib is not None:
+        camera = read_camera_txt(calib, w, h)
     if camera is None:
         if sensor is None:
             raise CalibrationError(f"{cam_dir} has no sensor.yaml: pass camera=Intrinsics(...)")

@@ -17,6 +17,7 @@ import numpy as np
 from ..camera import Intrinsics
 from ..errors import CalibrationError, ConfigError, SourceError
 from .base import ImageListSource, read_image, select
+from .calibration import find_camera_txt, read_camera_txt
 from .groundtruth import associate_nearest, read_tum_trajectory
 from .textfiles import require_path
 
@@ -117,16 +118,19 @@ def image_size(path: str | Path) -> tuple[int, int]:
     return int(image.shape[1]), int(image.shape[0])
 
 
-def resolve_camera(camera: Intrinsics | float | None, width: int, height: int,
+def resolve_camera(camera: Intrinsics | float | str | None, width: int, height: int,
                    default: Intrinsics | None = None, where: str = "images") -> Intrinsics:
     """The intrinsics of ``width`` x ``height`` images from what the user gave.
 
     ``camera`` may be an :class:`Intrinsics` (must be for that size: CalibrationError otherwise), a focal
-    length in pixels (principal point at the centre, no distortion), or None for ``default`` when given,
-    else ``Intrinsics.from_focal(width, height)`` (focal 1.2 x max(width, height)).
+    length in pixels (principal point at the centre, no distortion), a camera text as ``--camera`` takes
+    it (``"F"``, ``"FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]"``, :meth:`Intrinsics.parse`), or None for ``default``
+    when given, else ``Intrinsics.from_focal(width, height)`` (focal 1.2 x max(width, height)).
     """
     if camera is None:
         camera = default if default is not None else Intrinsics.from_focal(width, height)
+    elif isinstance(camera, str):
+        camera = Intrinsics.parse(camera, width, height)
     elif isinstance(camera, (int, float)) and not isinstance(camera, bool):
         camera = Intrinsics.from_focal(width, height, float(camera))
     elif not isinstance(camera, Intrinsics):
@@ -147,7 +151,7 @@ def check_fps(fps: float) -> float:
     return value
 
 
-def open_folder(path: str | Path, *, camera: Intrinsics | float | None = None, fps: float = 30.0,
+def open_folder(path: str | Path, *, camera: Intrinsics | float | str | None = None, fps: float = 30.0,
                 pattern: str | None = None, groundtruth: str | Path | None = None, max_dt: float = 0.02,
                 frame_skip: int = 1, max_frames: int | None = None) -> ImageListSource:
     """Open a folder of images as a frame source.
@@ -155,7 +159,8 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | None = None, f
     Args:
         path: the folder. Images are files with an extension of :data:`IMAGE_EXTENSIONS`, or the files
             matching ``pattern``, in natural order.
-        camera: :class:`Intrinsics`, or a focal length in pixels, or None. **With None the intrinsics are a
+        camera: :class:`Intrinsics`, a focal length in pixels, a ``--camera`` text, or None: then the
+            folder's ``camera.txt`` when there is one (:mod:`~slamkit.sources.calibration`), else **a
             guess**: ``Intrinsics.from_focal(w, h)`` (focal 1.2 x max(w, h), principal point at the centre,
             no distortion) with (w, h) read off the first image.
         fps: frame rate; timestamps are ``frame index / fps`` seconds (the index before frame skip).
@@ -170,6 +175,9 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | None = None, f
     files = list_images(folder, pattern)
     keep = select(len(files), frame_skip, max_frames)
     w, h = image_size(files[0])
+    calib = find_camera_txt(folder) if camera is None else None
+    if calib is not None:
+        camera = read_camera_txt(calib, w, h)
     cam = resolve_camera(camera, w, h, where=str(files[0]))
     timestamps = keep / fps
     gt = None

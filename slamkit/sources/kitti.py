@@ -22,6 +22,7 @@ from ..camera import Intrinsics
 from ..errors import CalibrationError, ConfigError, FormatError, SourceError
 from ..geometry import pose_from_rows
 from .base import ImageListSource, select
+from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, list_images, resolve_camera
 from .textfiles import parse_float_rows, parse_keyed_rows, require_path
 
@@ -94,7 +95,7 @@ def _sequence_folder(root: Path, sequence: str | int | None) -> tuple[Path, Path
 
 
 def open_kitti(path: str | Path, *, sequence: str | int | None = None, camera_index: int | None = None,
-               camera: Intrinsics | None = None, frame_skip: int = 1,
+               camera: Intrinsics | float | str | None = None, frame_skip: int = 1,
                max_frames: int | None = None) -> ImageListSource:
     """Open a KITTI odometry sequence.
 
@@ -103,7 +104,8 @@ def open_kitti(path: str | Path, *, sequence: str | int | None = None, camera_in
         sequence: ``"07"`` or ``7``; may be omitted when the root holds a single sequence.
         camera_index: which ``image_<i>`` folder (0-3); default 0, or 2 when only colour images exist.
             Ground truth is moved from camera 0 to camera ``i`` with the baseline in ``P<i>``.
-        camera: override the intrinsics of ``calib.txt``.
+        camera: override the intrinsics of ``calib.txt`` (:class:`Intrinsics`, focal length or ``--camera``
+            text); without it a ``camera.txt`` in the image folder or the sequence folder does.
         frame_skip, max_frames: keep every ``frame_skip``-th image, at most ``max_frames``.
 
     ``times.txt`` and the poses file must have one line per image (FormatError otherwise). Images are
@@ -128,6 +130,9 @@ def open_kitti(path: str | Path, *, sequence: str | int | None = None, camera_in
     if len(times) != len(files):
         raise FormatError(times_file, None, f"has {len(times)} timestamps but {image_dir} has {len(files)} images")
     w, h = image_size(files[0])
+    calib_txt = find_camera_txt(image_dir, folder) if camera is None else None
+    if calib_txt is not None:
+        camera = read_camera_txt(calib_txt, w, h)
     calib_cam = kitti_intrinsics(P, w, h, where=str(calib_file))
     if camera is None:
         calib_cam.check_centred(where=f"{calib_file} ({key}) with the images of {image_dir}")

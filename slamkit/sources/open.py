@@ -84,14 +84,20 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
     Args:
         spec: a path (layout detected), ``layout:PATH``, ``default`` or ``synthetic:...``.
         frame_skip, max_frames: keep every ``frame_skip``-th frame, at most ``max_frames``.
-        camera: intrinsics override (:class:`Intrinsics`; a focal length in pixels for folders and videos;
-            for TUM also ``"fr1"``/``"fr2"``/``"fr3"``, passed as ``calibration``).
+        camera: intrinsics used instead of the source's own, applied before the source is opened (so a
+            TUM-layout folder whose name does not say freiburg1/2/3 opens): an :class:`Intrinsics`, a focal
+            length in pixels, or a ``--camera`` text ``"F"`` / ``"FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]"``; for TUM
+            also ``"fr1"``/``"fr2"``/``"fr3"`` (passed as ``calibration``). Without it a ``camera.txt``
+            beside the images is read when present (:mod:`~slamkit.sources.calibration`). An empty text
+            means none (``SlamConfig.camera``'s default). Not for synthetic sources (ConfigError).
         **kw: options of the layout's opener (e.g. ``sequence="07"`` for KITTI, ``fps=10`` for folders);
             an option the layout does not take raises ConfigError.
 
     Raises SourceError for a missing path, an empty folder or a folder where no image matched.
     """
     text = str(spec)
+    if isinstance(camera, str) and not camera.strip():
+        camera = None
     if text == "default" or text.startswith("synthetic:"):
         if camera is not None:
             raise ConfigError("camera= cannot be given for synthetic sources (their camera is part of the spec)")

@@ -22,6 +22,7 @@ import numpy as np
 from ..camera import Intrinsics
 from ..errors import CalibrationError, ConfigError, FormatError, SourceError
 from .base import ImageListSource, select
+from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, natural_sorted, resolve_camera
 from .textfiles import convert_fields, data_lines, parse_rows, require_path, to_float
 
@@ -102,14 +103,16 @@ def _choose_seq(root: Path, seq: str | int | None) -> Path:
     raise SourceError(f"{root} has no {name} (available: {', '.join(p.name for p in seqs)})")
 
 
-def open_sevenscenes(path: str | Path, *, seq: str | int | None = None, camera: Intrinsics | None = None,
+def open_sevenscenes(path: str | Path, *, seq: str | int | None = None,
+                     camera: Intrinsics | float | str | None = None,
                      frame_skip: int = 1, max_frames: int | None = None) -> ImageListSource:
     """Open a 7-Scenes sequence.
 
     Args:
         path: a scene folder (holding ``seq-XX/``) or a sequence folder.
         seq: ``"seq-01"`` or ``1``; default the first sequence of the scene.
-        camera: override the intrinsics (default: ``camera-intrinsics.txt`` of the sequence or scene
+        camera: override the intrinsics (:class:`Intrinsics`, focal length or ``--camera`` text; default: a
+            ``camera.txt`` in the sequence folder, else ``camera-intrinsics.txt`` of the sequence or scene
             folder, else :data:`SEVENSCENES_NOMINAL`; no distortion).
         frame_skip, max_frames: keep every ``frame_skip``-th frame, at most ``max_frames``.
 
@@ -132,6 +135,9 @@ def open_sevenscenes(path: str | Path, *, seq: str | int | None = None, camera: 
     keep = select(len(files), frame_skip, max_frames)
     paths = [files[i][1] for i in keep]
     w, h = image_size(paths[0])
+    calib_txt = find_camera_txt(folder) if camera is None else None
+    if calib_txt is not None:
+        camera = read_camera_txt(calib_txt, w, h)
     if camera is None:
         fx, fy, cx, cy = SEVENSCENES_NOMINAL
         origin = f"the nominal 7-Scenes intrinsics {SEVENSCENES_NOMINAL}"

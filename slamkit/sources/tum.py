@@ -21,6 +21,7 @@ import numpy as np
 from ..camera import Intrinsics
 from ..errors import AssociationError, CalibrationError, ConfigError, FormatError, SourceError
 from .base import ImageListSource, select
+from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, resolve_camera
 from .groundtruth import associate_nearest, read_tum_trajectory
 from .textfiles import check_increasing, parse_rows, require_path, to_float, to_str
@@ -71,10 +72,27 @@ def read_rgb_list(path: str | Path) -> tuple[np.ndarray, list[str], np.ndarray]:
     return t, [r[1] for r in rows], lines
 
 
-def _camera(folder: Path, calibration: str | Intrinsics | None) -> Intrinsics:
+def _is_camera_text(text: str) -> bool:
+    """True for a ``--camera`` text of numbers (``"F"``, ``"FX,FY,CX,CY,..."``), False for a sensor name."""
+    try:
+        [float(f) for f in text.translate(str.maketrans(",()[]", "     ")).split()]
+    except ValueError:
+        return False
+    return bool(text.strip())
+
+
+def _camera(folder: Path, calibration: str | float | Intrinsics | None, width: int, height: int,
+            image_dir: Path) -> Intrinsics:
+    """The calibration given (sensor name, Intrinsics, focal length or ``--camera`` text), else a
+    ``camera.txt`` in the sequence or image folder, else the sensor the folder name says."""
     if isinstance(calibration, Intrinsics):
         return calibration
+    if isinstance(calibration, (int, float)) or (isinstance(calibration, str) and _is_camera_text(calibration)):
+        return resolve_camera(calibration, width, height)
     if calibration is None:
+        calib = find_camera_txt(folder, image_dir)
+        if calib is not None:
+            return read_camera_txt(calib, width, height)
         name = calibration_from_name(folder)
         if name is None:
             raise CalibrationError(
@@ -84,14 +102,16 @@ def _camera(folder: Path, calibration: str | Intrinsics | None) -> Intrinsics:
     return tum_calibration(calibration)
 
 
-def open_tum(path: str | Path, *, calibration: str | Intrinsics | None = None, max_dt: float = 0.02,
+def open_tum(path: str | Path, *, calibration: str | float | Intrinsics | None = None, max_dt: float = 0.02,
              min_gt_fraction: float = 0.5, frame_skip: int = 1,
              max_frames: int | None = None) -> ImageListSource:
     """Open a TUM RGB-D sequence folder (the one holding ``rgb.txt``).
 
     Args:
-        calibration: ``"fr1"``/``"fr2"``/``"fr3"``, an :class:`Intrinsics`, or None to choose from the
-            folder name (``freiburg1``, ``fr1``...; CalibrationError when it does not say).
+        calibration: ``"fr1"``/``"fr2"``/``"fr3"``, an :class:`Intrinsics`, a focal length or a ``--camera``
+            text (``"FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]"``), or None: then a ``camera.txt`` beside ``rgb.txt`` or
+            the images (:mod:`~slamkit.sources.calibration`), else the sensor the folder name says
+            (``freiburg1``, ``fr1``...; CalibrationError when it does not say).
         max_dt: largest |image time - ground-truth time| in seconds for an image to get a pose.
         min_gt_fraction: when ``groundtruth.txt`` exists but fewer than this fraction of the listed images
             get a pose, raise AssociationError (wrong ground-truth file?). Without ``groundtruth.txt``
@@ -118,7 +138,8 @@ def open_tum(path: str | Path, *, calibration: str | Intrinsics | None = None, m
                           f"{', '.join(missing[:3])}{more}")
     keep = select(len(t), frame_skip, max_frames)
     w, h = image_size(paths[keep[0]])
-    cam = resolve_camera(_camera(folder, calibration), w, h, where=str(paths[keep[0]]))
+    cam = resolve_camera(_camera(folder, calibration, w, h, paths[keep[0]].parent), w, h,
+                         where=str(paths[keep[0]]))
     gt = None
     gt_file = folder / "groundtruth.txt"
     if gt_file.is_file():

@@ -21,6 +21,7 @@ import numpy as np
 from ..camera import Intrinsics
 from ..errors import ImageReadError, SourceError
 from .base import FrameSource, select
+from .calibration import find_camera_txt, read_camera_txt
 from .folder import check_fps, resolve_camera
 from .textfiles import require_path
 
@@ -40,7 +41,8 @@ class VideoSource(FrameSource):
         n_video_frames: number of frames of the whole video (before frame skip / max frames).
     """
 
-    def __init__(self, path: str | Path, *, camera: Intrinsics | float | None = None, fps: float | None = None,
+    def __init__(self, path: str | Path, *, camera: Intrinsics | float | str | None = None,
+                 fps: float | None = None,
                  exact_count: bool = False, frame_skip: int = 1, max_frames: int | None = None):
         self.path = require_path(path, "video file")
         select(0, frame_skip, max_frames)  # validate early
@@ -70,6 +72,9 @@ class VideoSource(FrameSource):
         else:
             self.fps = DEFAULT_FPS
         self.name = f"video/{self.path.stem}"
+        calib = find_camera_txt(self.path.parent) if camera is None else None
+        if calib is not None:
+            camera = read_camera_txt(calib, width, height)
         self.camera = resolve_camera(camera, width, height, where=str(self.path))
         self.frame_ids = select(self.n_video_frames, frame_skip, max_frames).astype(np.int64)
         self.timestamps = self.frame_ids / self.fps
@@ -146,13 +151,14 @@ class VideoSource(FrameSource):
     __repr__ = FrameSource.__repr__
 
 
-def open_video(path: str | Path, *, camera: Intrinsics | float | None = None, fps: float | None = None,
+def open_video(path: str | Path, *, camera: Intrinsics | float | str | None = None, fps: float | None = None,
                exact_count: bool = False, frame_skip: int = 1, max_frames: int | None = None) -> VideoSource:
     """Open a video file as a frame source.
 
     Args:
-        camera: :class:`Intrinsics`, or a focal length in pixels, or None for the documented guess
-            ``Intrinsics.from_focal(w, h)`` (focal 1.2 x max(w, h), principal point at the centre).
+        camera: :class:`Intrinsics`, a focal length in pixels or a ``--camera`` text; else a ``camera.txt``
+            beside the video file, else the documented guess ``Intrinsics.from_focal(w, h)`` (focal
+            1.2 x max(w, h), principal point at the centre).
         fps: override the container's frame rate; timestamps are ``frame number / fps`` seconds (fallback
             30 fps when the container reports none).
         exact_count: count frames by grabbing through the video instead of trusting the container.

@@ -1,0 +1,123 @@
+"""Export a saved run as a dataset for Gaussian splatting or NeRF: the library function (see the package
+docstring of :mod:`slamkit.exporter`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import SlamConfig
+from ..errors import ConfigError, OutputError, SlamkitError
+from ..features import create_extractor
+from ..io.atomic import atomic_dir
+from ..sources.base import FrameSource
+from .camera import ExportCamera
+from .images import ProgressCallback, file_name, read_gray, reopen_source, write_image
+from .model import PointDescriptors, build_model, keyframe_descriptors, match_frame, select_frames
+from .nerfstudio import PLY_NAME, write_ply, write_transforms
+from .runfolder import PosedFrame, SavedRun, load_run
+
+FORMATS = ("colmap", "nerfstudio")
+MARKER = ".slamkit-export"
+"""File marking a folder written by :func:`export` (an existing folder without it is never replaced)."""
+
+
+@dataclass(frozen=True)
+class ExportResult:
+    """What :func:`export` wrote: folder, format, registered images, 3D points, observations recovered
+    for non-keyframes, the exported camera model and its mean reprojection error (pixels)."""
+
+    path: Path
+    format: str
+    num_images: int
+    num_points: int
+    num_matched_observations: int
+    camera_model: str
+    mean_reprojection_error: float
+
+
+def _check_out(out: Path, run_dir: Path) -> None:
+    out_r, run_r = out.resolve(), run_dir.resolve()
+    if out_r == run_r or out_r in run_r.parents:
+        raise OutputError(f"{out}: the export folder would replace the run folder {run_dir}")
+    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
+        raise OutputError(f"{out}: exists and is not empty (and not a slamkit export); choose another --out")
+
+
+def _extractor(config: SlamConfig):
+    """The run's feature extractor, or None when it cannot be created here (then no observations)."""
+    try:
+        return create_extractor(config.features, **config.extractor_options())
+    except (SlamkitError, ImportError):
+        return None
+
+
+def _write_images(run: SavedRun, source: FrameSource, frames: list[PosedFrame], camera: ExportCamera,
+                  folder: Path, names: dict[int, str], progress: ProgressCallback | None):
+    """Write every frame's image; returns the non-keyframe observations ``{index: (pixels, point ids)}``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    keyframes = [f for f in frames if f.is_keyframe]
+    others = [f for f in frames if not f.is_keyframe]
+    extractor = _extractor(run.config) if others else None
+    points = PointDescriptors(run.model)
+    extra: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    K, size = run.camera.K, (run.camera.width, run.camera.height)
+    for done, f in enumerate(keyframes + others, start=1):
+        decoded = write_image(run, source, f, camera, folder / names[f.index])
+        if extractor is not None:
+            gray = decoded.gray if decoded is not None else read_gray(run, source, f)
+            feats = extractor.extract(gray)
+            kp = run.camera.undistort_points(feats.keypoints)
+            if f.is_keyframe:
+                found = keyframe_descriptors(run.model, f.image_id, feats, kp)
+                if found is not None:
+                    points.add(f.index, f.image_id, *found, feats.binary)
+            else:
+                extra[f.index] = match_frame(points, f, feats, kp, K, size, run.config)
+        if progress is not None:
+            progress(done, len(frames))
+    return extra
+
+
+def export(run_dir: str | Path, out: str | Path, format: str = "colmap", frames: str = "keyframes",
+           undistort: bool | None = None, progress: ProgressCallback | None = None,
+           source: FrameSource | str | None = None) -> ExportResult:
+    """Export the run saved in ``run_dir`` to ``out`` (see the module docstring).
+
+    Args:
+        format: ``"colmap"`` (``images/`` + ``sparse/0/``) or ``"nerfstudio"`` (``images/`` +
+            ``transforms.json`` + ``sparse_pc.ply``).
+        frames: ``"keyframes"``, ``"all"`` or ``"every=N"`` (every N-th posed frame plus the keyframes).
+        undistort: resample distorted images onto a PINHOLE camera (COLMAP's undistorter); None or False
+            keeps the source's distortion in the exported camera (OPENCV). No effect without distortion.
+        progress: ``progress(done, total)`` after each image.
+        source: the run's frame source (or spec) when the session does not record it or it moved.
+
+    Raises RunFolderError naming the missing file of an incomplete run folder, ConfigError for a bad
+    ``format``/``frames``, OutputError when ``out`` cannot be written or is a folder that is not an export.
+    """
+    if format not in FORMATS:
+        raise ConfigError(f"format must be one of {', '.join(FORMATS)} (got {format!r})")
+    out, run_dir = Path(out), Path(run_dir)
+    run = load_run(run_dir, source.camera if isinstance(source, FrameSource) else None)
+    selected = select_frames(run.frames, frames)
+    _check_out(out, run_dir)
+    src = reopen_source(run, source)
+    camera = ExportCamera.create(run.camera, bool(undistort))
+    names = {f.index: file_name(run, src, f, camera) for f in selected}
+    with atomic_dir(out) as tmp:
+        (tmp / MARKER).write_text(f"slamkit export of {run_dir.resolve()}\n")
+        extra = _write_images(run, src, selected, camera, tmp / "images", names, progress)
+        rec = build_model(run.model, selected, camera, names, extra)
+        if format == "colmap":
+            (tmp / "sparse" / "0").mkdir(parents=True)
+            rec.write_binary(str(tmp / "sparse" / "0"))
+        else:
+            write_transforms(tmp / "transforms.json", camera, rec)
+            write_ply(tmp / PLY_NAME, rec)
+    return ExportResult(out, format, rec.num_reg_images(), rec.num_points3D(),
+                        int(sum(len(p) for _, p in extra.values())), camera.model_name,
+                        float(rec.compute_mean_reprojection_error()))
+
