@@ -191,8 +191,13 @@ def test_map_view_scene_matches_the_map(run):
     assert np.array_equal(view.point_ids(), np.sort(ids))
     assert counts["keyframes"] == m.num_keyframes
     assert counts["path"] == len(slam.trajectory())
-    last = slam.last_result
-    assert counts["current"] == int(last.status == "tracked" and not last.is_keyframe)  # tracked non-key frames
+    # after finish() (a global BA that moves every pose) the current frame sits at the last frame's final pose
+    assert counts["current"] == 1
+    final = np.linalg.inv(slam.pose_of(len(slam.records) - 1))
+    assert np.allclose(view._map.current, final)
+    assert np.linalg.norm(final[:3, 3] - slam.trajectory().positions[-1]) < 1e-9
+    marker = scene_objects(view)["__properties__"]
+    assert marker.get("/meshcat/slamkit/current/frame", {}).get("visible", True) is True
 
     scene = scene_objects(view)
     groups = {p: o for p, o in scene.items() if p.startswith("/meshcat/slamkit/points/")}
