@@ -276,7 +276,7 @@ class MapView:
         shown.path_t, shown.path_c = state.path_times.copy(), state.path_centers.copy()
         refit = shown.refit_needed(full)
         if refit:
-            shown.set_fit(refit if isinstance(refit, tuple) else shown.compute_fit())
+            shown.set_fit(refit if isinstance(refit, tuple) else shown.compute_fit(), self.aspect)
             st.refit = True
         return _Diff(changes.groups, keyframes.changed, path_changed, bool(refit), new_map)
 
@@ -358,7 +358,7 @@ class MapView:
         """Fit the whole map into the viewer and put the viewer's camera back to its overview position."""
         out, shown = self._out, self._map
         if shown.key is not None:
-            shown.set_fit(shown.compute_fit())
+            shown.set_fit(shown.compute_fit(), self.aspect)
             out.send_fit(shown)
             out.send_point_groups(shown, self.settings, shown.points.groups() | set(out.chunks))
             out.send_cameras(shown, self.settings)
@@ -400,6 +400,24 @@ class MapView:
         points = self._map.points
         alive = points.alive()
         return dict(zip(points.pid[alive].tolist(), points.intro[alive].tolist()))
+
+    def scale_numbers(self) -> dict[str, float]:
+        """Map units: the fitted extent, the keyframe frustums' depth, the points' diameter and the median
+        distance from a point to its nearest camera (what the point size is relative to)."""
+        shown = self._map
+        return {"extent": shown.map_extent, "frustum_depth": self.settings.frustum_depth(shown.map_extent),
+                "point_diameter": self.settings.point_diameter(shown.view_depth), "view_depth": shown.view_depth}
+
+    def longest_tracks(self, n: int = 30) -> list[tuple[int, int]]:
+        """(point id, number of images observing it) of the ``n`` map points in the view seen by most images,
+        longest first (ties: lower id first)."""
+        rec = self._map.reconstruction
+        if rec is None or self.num_points == 0:
+            return []
+        ids = self.point_ids()
+        lengths = np.array([rec.point3D(int(p)).track.length() if rec.exists_point3D(int(p)) else 0 for p in ids])
+        order = np.lexsort((ids, -lengths))[:n]
+        return [(int(ids[i]), int(lengths[i])) for i in order if lengths[i] > 0]
 
     @property
     def display_from_map(self) -> np.ndarray:

@@ -234,6 +234,28 @@ def home_camera_position(points_display: np.ndarray, aspect: float, cameras_disp
     return d * hi
 
 
+def view_centering(points_display: np.ndarray, cameras_display: np.ndarray, aspect: float,
+                   direction: np.ndarray = VIEW_DIRECTION, fov_deg: float = VIEWER_FOV_DEG) -> np.ndarray:
+    """(3,) display-frame offset of the middle of what the home camera sees (the 5-95 % box of the projected
+    points and every camera) from the origin it looks at; moving the map by minus it centres the picture,
+    so the map can fill more of the viewer. Zero without points."""
+    pts = np.concatenate([np.asarray(points_display, np.float64).reshape(-1, 3),
+                          np.asarray(cameras_display, np.float64).reshape(-1, 3)])
+    if len(pts) == 0:
+        return np.zeros(3)
+    pos = home_camera_position(points_display, aspect, cameras_display, direction=direction, fov_deg=fov_deg)
+    d = pos / np.linalg.norm(pos)
+    right = np.cross(d, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, d)
+    t = np.tan(np.radians(fov_deg) / 2)
+    depth = np.maximum(np.linalg.norm(pos) - pts @ d, 1e-3)
+    x, y = (pts @ right) / (depth * t * aspect), (pts @ up) / (depth * t)
+    (x0, x1), (y0, y1) = np.percentile(x, FIT_PERCENTILES), np.percentile(y, FIT_PERCENTILES)
+    dist = float(np.median(depth))
+    return (x0 + x1) / 2 * dist * t * aspect * right + (y0 + y1) / 2 * dist * t * up
+
+
 def display_from_map(fit: tuple[np.ndarray, float] | None) -> np.ndarray:
     """(4, 4) the similarity from map coordinates to the viewer's: centred, scaled to DISPLAY_EXTENT, z up."""
     c, extent = fit if fit is not None else (np.zeros(3), DISPLAY_EXTENT)
@@ -296,6 +318,6 @@ def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
 __all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR", "TRACK_COLOR",
            "Camera", "recency_colors", "hex_to_rgb255", "points_object", "lines_object", "background_object",
            "geometry_bytes", "world_from_cam", "time_fractions", "frustum_vertices", "compute_fit", "robust_box",
-           "nearest_camera_distance", "home_camera_position", "VIEW_DIRECTION", "FIT_PERCENTILES",
+           "nearest_camera_distance", "home_camera_position", "view_centering", "VIEW_DIRECTION", "FIT_PERCENTILES",
            "display_from_map", "keyframes_object", "path_object", "path_vertex_times", "directions_object",
            "current_frame_object", "track_lines_object", "track_point_object"]

@@ -15,8 +15,8 @@ import numpy as np
 import pycolmap
 
 from .diff import PointStore
-from .scene import (DISPLAY_EXTENT, Camera, compute_fit, display_from_map, nearest_camera_distance, time_fractions,
-                    world_from_cam)
+from .scene import (DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, Camera, compute_fit, display_from_map,
+                    nearest_camera_distance, time_fractions, view_centering, world_from_cam)
 from .settings import ViewSettings
 
 
@@ -44,6 +44,8 @@ class ShownMap:
         """Keyframe -> the point ids it observed when last read in full (to find deleted points)."""
         self.fit: tuple[np.ndarray, float] | None = None
         """(centre (3,), extent) of the display fit, map units."""
+        self.fit_box: tuple[np.ndarray, float] | None = None
+        """(centre (3,), extent) of the 5-95 % box the fit was made from (before centring the picture)."""
         self.view_depth = 1.0
         """Median distance from a map point to its nearest camera, map units (set with the fit)."""
         self.camera: Camera | None = None
@@ -96,9 +98,15 @@ class ShownMap:
         pts = self.points.xyz[self.points.alive()].astype(np.float64)
         return compute_fit(pts, self.kf_centers(), self.path_c)
 
-    def set_fit(self, fit: tuple[np.ndarray, float]) -> None:
-        """Use ``fit`` and measure the depth the points were seen at (for their size) on the same map."""
-        self.fit = fit
+    def set_fit(self, fit: tuple[np.ndarray, float], aspect: float | None = None) -> None:
+        """Use ``fit`` and measure the depth the points were seen at (for their size) on the same map; with
+        the viewer's ``aspect`` (width / height), move the centre so the home camera's picture is centred."""
+        self.fit = self.fit_box = fit
+        if aspect is not None:
+            points, cameras = self.display_points()
+            offset = view_centering(points, cameras, aspect)
+            R = DISPLAY_FROM_OPENCV * (DISPLAY_EXTENT / fit[1])
+            self.fit = (fit[0] + np.linalg.solve(R, offset), fit[1])
         pts = self.points.xyz[self.points.alive()]
         depth = nearest_camera_distance(pts, np.concatenate([self.kf_centers(), self.path_c]))
         self.view_depth = depth if np.isfinite(depth) and depth > 0 else fit[1] / 3
@@ -128,7 +136,7 @@ class ShownMap:
         Returns the new fit when it was computed."""
         if self.fit is None:
             return True
-        c, ext = self.fit
+        c, ext = self.fit_box if self.fit_box is not None else self.fit
         if full:
             cand = self.compute_fit()
             if not (0.6 * ext <= cand[1] <= 1.25 * ext) or np.abs(cand[0] - c).max() > 0.25 * ext:
