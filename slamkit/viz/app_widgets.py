@@ -199,7 +199,9 @@ class AppWidgets:
         widget.add_class("slamkit-app")
         for w, cls in ((self.b_step, "slamkit-step-button"), (self.b_run, "slamkit-run-button"),
                        (self.b_reset, "slamkit-reset-button"), (self.w_flow, "slamkit-flow-threshold"),
-                       (self.w_pending, "slamkit-pending"), (self.map_html, "slamkit-map-view")):
+                       (self.w_pending, "slamkit-pending"), (self.map_html, "slamkit-map-view"),
+                       (self.b_matches, "slamkit-matches-button"), (self.m_image, "slamkit-match-image"),
+                       (self.m_label, "slamkit-match-label"), (self.v_clip_on, "slamkit-clip")):
             w.add_class(cls)
         return widget
 
