@@ -128,7 +128,8 @@ GEOMETRY_JS = """() => {
     const root = viewer.scene.getObjectByName("meshcat").getObjectByName("slamkit");
     const cam = viewer.camera;
     cam.updateMatrixWorld(true);
-    const out = {view: Array.from(cam.matrixWorldInverse.elements), proj: Array.from(cam.projectionMatrix.elements),
+    const out = {camera: Array.from(cam.matrixWorld.elements), proj: Array.from(cam.projectionMatrix.elements),
+                 aspect: cam.aspect, fov: cam.fov,
                  points: [], path: null, current: null, current_visible: false};
     if (!root) return out;
     root.updateMatrixWorld(true);
@@ -157,8 +158,10 @@ def _world(obj) -> np.ndarray:
     return xyz @ M[:3, :3].T + M[:3, 3]
 
 
-def _check_geometry(viewer_frame) -> dict:
+def _check_geometry(viewer_frame, frame_el) -> dict:
     """What a student sees after a run to the end: the marker at the end of the path, the map filling the view."""
+    frame_el.scroll_into_view_if_needed()
+    time.sleep(0.6)  # the viewer renders (and its camera moves) on the next animation frame
     g = _wait(lambda: (lambda g: g if g["points"] and g["path"] and g["current"] else None)(
         viewer_frame.evaluate(GEOMETRY_JS)), 30, "the map, the path and the current frame in the viewer")
     path_end = _world(g["path"])[-1]  # the last vertex of the last segment: the last posed frame
@@ -167,13 +170,26 @@ def _check_geometry(viewer_frame) -> dict:
     extent = np.ptp(np.percentile(points, [5, 95], axis=0), axis=0).max()
     gap = float(np.linalg.norm(marker - path_end))
     assert g["current_visible"] and gap < 0.01 * extent, (gap, extent)  # at the final pose, not the pre-BA one
-    clip = np.c_[points, np.ones(len(points))] @ (_mat(g["proj"]) @ _mat(g["view"])).T
-    front = clip[:, 3] > 0
-    ndc = clip[front, :2] / clip[front, 3:4]
-    lo, hi = np.clip(np.percentile(ndc, [5, 95], axis=0), -1, 1)
+    view = np.linalg.inv(_mat(g["camera"]))  # world -> camera, from the camera's pose as the app set it
+
+    def ndc(xyz):
+        clip = np.c_[xyz, np.ones(len(xyz))] @ (_mat(g["proj"]) @ view).T
+        front = clip[:, 3] > 0
+        return clip[front, :2] / clip[front, 3:4], front
+
+    # the map's box on screen: the 5-95 % range of the points (a few far ones aside) and the whole camera path
+    on_screen, front = ndc(points)
+    path_ndc, _ = ndc(_world(g["path"]))
+    lo = np.minimum(np.percentile(on_screen, 5, axis=0), path_ndc.min(axis=0))
+    hi = np.maximum(np.percentile(on_screen, 95, axis=0), path_ndc.max(axis=0))
+    lo, hi = np.clip(lo, -1, 1), np.clip(hi, -1, 1)
     coverage = float(np.prod(hi - lo) / 4)  # NDC spans [-1, 1] on both axes
-    assert front.mean() > 0.95 and coverage >= 0.5, (front.mean(), coverage)
-    return {"marker_gap": gap, "extent": float(extent), "coverage": coverage}
+    info = {"marker_gap": gap, "extent": float(extent), "coverage": coverage, "aspect": g["aspect"],
+            "camera": _mat(g["camera"])[:3, 3].round(3).tolist(), "in_front": float(front.mean()),
+            "box": [lo.round(3).tolist(), hi.round(3).tolist()]}
+    print("framing:", info)
+    assert front.mean() > 0.95 and coverage >= 0.5, info
+    return info
 
 
 def _no_raw_html(page) -> None:
@@ -237,7 +253,7 @@ def test_step_through_notebook_in_chromium(lab):
             map_frame_el.wait_for()
             viewer_frame = next(f for f in page.frames if "/static/" in f.url)
             viewer_frame.wait_for_function("() => typeof viewer !== 'undefined'")
-            geometry = {"run_all": _check_geometry(viewer_frame)}
+            geometry = {"run_all": _check_geometry(viewer_frame, map_frame_el)}
 
             # --- Draw matches and a clip range, then Reset: both belong to the discarded run and must go
             page.locator("button.slamkit-matches-button").first.click()
@@ -314,7 +330,7 @@ def test_step_through_notebook_in_chromium(lab):
             assert scene["points"] == s["points"] == s["scene-points"]
             assert scene["frustums"] == s["keyframes"] == s["scene-keyframes"]
             after = _shot(page, map_frame_el, tmp / "map_after_run.png")
-            geometry["run_to_the_end"] = _check_geometry(viewer_frame)
+            geometry["run_to_the_end"] = _check_geometry(viewer_frame, map_frame_el)
             _no_raw_html(page)
 
             # --- the rendered view changed

@@ -188,72 +188,75 @@ VIEWER_FOV_DEG = 75.0
 """Vertical field of view of meshcat's default camera, degrees."""
 
 
+def _view_axes(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d, right, up) unit vectors of a camera looking at the origin from ``direction``, z up."""
+    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    right = np.cross(d, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    return d, right, np.cross(right, d)
+
+
+def screen_box(points: np.ndarray, cameras: np.ndarray, position: np.ndarray, aspect: float,
+               fov_deg: float = VIEWER_FOV_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (2,), hi (2,)) normalized device coordinates (the viewer spans -1..1) of the 5-95 percentile box
+    of the projected ``points`` (N, 3) joined with every camera centre ``cameras`` (M, 3), seen from
+    ``position`` looking at the origin, z up."""
+    d, right, up = _view_axes(position)
+    dist, t = float(np.linalg.norm(position)), np.tan(np.radians(fov_deg) / 2)
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for xyz, q in ((points, FIT_PERCENTILES), (cameras, (0.0, 100.0))):
+        if len(xyz):
+            depth = np.maximum(dist - xyz @ d, 1e-3)
+            xy = np.stack([(xyz @ right) / (depth * t * aspect), (xyz @ up) / (depth * t)], axis=1)
+            a, b = np.percentile(xy, q, axis=0)
+            lo, hi = np.minimum(lo, a), np.maximum(hi, b)
+    return lo, hi
+
+
 def home_camera_position(points_display: np.ndarray, aspect: float, cameras_display: np.ndarray | None = None,
                          fill: float = 0.85, direction: np.ndarray = VIEW_DIRECTION,
                          fov_deg: float = VIEWER_FOV_DEG) -> np.ndarray:
     """(3,) display-frame position of the viewer's camera, looking at the origin along ``-direction`` with z
     up, at the distance where the 5-95 percentile box of the projected ``points_display`` (N, 3) and every
     camera centre ``cameras_display`` (M, 3) reach ``fill`` of the way from the viewer's centre to its edge
-    (on the side and axis that bind; ``aspect`` = width / height), and outside the 3D 5-95 percentile box
-    of the points."""
+    (on the side and axis that bind; ``aspect`` = width / height), and in front of 98 % of the points and of
+    every camera."""
     pts = np.asarray(points_display, np.float64).reshape(-1, 3)
     cams = np.empty((0, 3)) if cameras_display is None else np.asarray(cameras_display, np.float64).reshape(-1, 3)
-    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    d = _view_axes(direction)[0]
     if len(pts) + len(cams) == 0:
         return d * DISPLAY_EXTENT * 1.1
-    right = np.cross(d, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, d)
-    t = np.tan(np.radians(fov_deg) / 2)
-
-    def ndc(xyz: np.ndarray, dist: float) -> tuple[np.ndarray, np.ndarray]:
-        depth = np.maximum(dist - xyz @ d, 1e-3)
-        return (xyz @ right) / (depth * t * aspect), (xyz @ up) / (depth * t)
-
-    def spread(dist: float) -> float:
-        lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
-        if len(pts):
-            x, y = ndc(pts, dist)
-            (x0, x1), (y0, y1) = np.percentile(x, FIT_PERCENTILES), np.percentile(y, FIT_PERCENTILES)
-            lo, hi = np.minimum(lo, [x0, y0]), np.maximum(hi, [x1, y1])
-        if len(cams):
-            x, y = ndc(cams, dist)
-            lo, hi = np.minimum(lo, [x.min(), y.min()]), np.maximum(hi, [x.max(), y.max()])
-        return float(np.max(np.abs([lo, hi])))  # the camera looks at the origin: the farther side binds
-
-    lo_box, hi_box = robust_box(np.concatenate([pts, cams]))
-    corners = np.array([[x, y, z] for x in (lo_box[0], hi_box[0]) for y in (lo_box[1], hi_box[1])
-                        for z in (lo_box[2], hi_box[2])])
-    near = float(np.max(corners @ d)) + 0.05 * DISPLAY_EXTENT  # outside the box: no point a few pixels away
+    # in front of 98 % of the points and of every camera: no point a few pixels from the eye
+    near = float(np.percentile(pts @ d, 98)) if len(pts) else -np.inf
     if len(cams):
-        near = max(near, float(np.max(cams @ d)) + 0.05 * DISPLAY_EXTENT)
+        near = max(near, float(np.max(cams @ d)))
+    near += 0.05 * DISPLAY_EXTENT
     lo, hi = near, near + 100 * DISPLAY_EXTENT
-    for _ in range(50):  # the spread falls as the camera backs away: bisect on it
+    for _ in range(50):  # what the viewer sees shrinks as the camera backs away: bisect on it
         mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if spread(mid) > fill else (lo, mid)
+        box = screen_box(pts, cams, d * mid, aspect, fov_deg)
+        lo, hi = (mid, hi) if float(np.max(np.abs(box))) > fill else (lo, mid)
     return d * hi
 
 
 def view_centering(points_display: np.ndarray, cameras_display: np.ndarray, aspect: float,
                    direction: np.ndarray = VIEW_DIRECTION, fov_deg: float = VIEWER_FOV_DEG) -> np.ndarray:
-    """(3,) display-frame offset of the middle of what the home camera sees (the 5-95 % box of the projected
-    points and every camera) from the origin it looks at; moving the map by minus it centres the picture,
-    so the map can fill more of the viewer. Zero without points."""
-    pts = np.concatenate([np.asarray(points_display, np.float64).reshape(-1, 3),
-                          np.asarray(cameras_display, np.float64).reshape(-1, 3)])
-    if len(pts) == 0:
+    """(3,) display-frame offset of the middle of what the home camera sees (:func:`screen_box`) from the
+    origin it looks at; moving the map by minus it centres the picture, so the map can fill more of the
+    viewer. Zero without points."""
+    pts = np.asarray(points_display, np.float64).reshape(-1, 3)
+    cams = np.asarray(cameras_display, np.float64).reshape(-1, 3)
+    if len(pts) + len(cams) == 0:
         return np.zeros(3)
-    pos = home_camera_position(points_display, aspect, cameras_display, direction=direction, fov_deg=fov_deg)
-    d = pos / np.linalg.norm(pos)
-    right = np.cross(d, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, d)
-    t = np.tan(np.radians(fov_deg) / 2)
-    depth = np.maximum(np.linalg.norm(pos) - pts @ d, 1e-3)
-    x, y = (pts @ right) / (depth * t * aspect), (pts @ up) / (depth * t)
-    (x0, x1), (y0, y1) = np.percentile(x, FIT_PERCENTILES), np.percentile(y, FIT_PERCENTILES)
-    dist = float(np.median(depth))
-    return (x0 + x1) / 2 * dist * t * aspect * right + (y0 + y1) / 2 * dist * t * up
+    offset = np.zeros(3)
+    for _ in range(3):  # re-centre from the new camera distance (converges in two or three rounds)
+        pos = home_camera_position(pts - offset, aspect, cams - offset, direction=direction, fov_deg=fov_deg)
+        d, right, up = _view_axes(pos)
+        lo, hi = screen_box(pts - offset, cams - offset, pos, aspect, fov_deg)
+        depth = float(np.median(np.linalg.norm(pos) - np.concatenate([pts, cams]) @ d))
+        t = np.tan(np.radians(fov_deg) / 2)
+        offset = offset + (lo[0] + hi[0]) / 2 * depth * t * aspect * right + (lo[1] + hi[1]) / 2 * depth * t * up
+    return offset
 
 
 def display_from_map(fit: tuple[np.ndarray, float] | None) -> np.ndarray:
@@ -318,6 +321,6 @@ def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
 __all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR", "TRACK_COLOR",
            "Camera", "recency_colors", "hex_to_rgb255", "points_object", "lines_object", "background_object",
            "geometry_bytes", "world_from_cam", "time_fractions", "frustum_vertices", "compute_fit", "robust_box",
-           "nearest_camera_distance", "home_camera_position", "view_centering", "VIEW_DIRECTION", "FIT_PERCENTILES",
+           "nearest_camera_distance", "home_camera_position", "view_centering", "screen_box", "VIEW_DIRECTION", "FIT_PERCENTILES",
            "display_from_map", "keyframes_object", "path_object", "path_vertex_times", "directions_object",
            "current_frame_object", "track_lines_object", "track_point_object"]
