@@ -135,7 +135,8 @@ GEOMETRY_JS = """() => {
     root.updateMatrixWorld(true);
     const pts = root.getObjectByName("points");
     if (pts) pts.traverse(o => { if (o.type === "Points" && o.visible)
-        out.points.push({m: Array.from(o.matrixWorld.elements), p: Array.from(o.geometry.attributes.position.array)}); });
+        out.points.push({m: Array.from(o.matrixWorld.elements),
+                         p: Array.from(o.geometry.attributes.position.array)}); });
     const path = root.getObjectByName("path");
     if (path) path.traverse(o => { if (o.type === "LineSegments")
         out.path = {m: Array.from(o.matrixWorld.elements), p: Array.from(o.geometry.attributes.position.array)}; });

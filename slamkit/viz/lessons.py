@@ -103,7 +103,8 @@ def _pipeline(name: str) -> tuple[object, object | None, SlamConfig]:
     return extractor, matcher, config
 
 
-def detect_and_match(frame1: Frame, frame2: Frame, name: str = "orb") -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+def detect_and_match(frame1: Frame, frame2: Frame, name: str = "orb"
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """(keypoints1 (N1, 2), keypoints2 (N2, 2) undistorted pixels, pairs (M, 2), seconds) of a feature
     pipeline (``orb``, ``sift``, ``xfeat``, ...) with the matcher the pipeline uses at initialization."""
     extractor, matcher, config = _pipeline(name)

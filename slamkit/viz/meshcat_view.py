@@ -425,6 +425,7 @@ class MapView:
         return display_from_map(self._map.fit)
 
 
-__all__ = ["MapView", "MapState", "legend_text", "captioned_html", "DEFAULT_TITLE", "ViewSettings", "UpdateStats", "state_from_slam", "state_from_run",
+__all__ = ["MapView", "MapState", "legend_text", "captioned_html", "DEFAULT_TITLE", "ViewSettings", "UpdateStats",
+           "state_from_slam", "state_from_run",
            "recency_colors", "DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR",
            "TRACK_COLOR", "hex_to_rgb255"]

@@ -321,6 +321,7 @@ def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
 __all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR", "TRACK_COLOR",
            "Camera", "recency_colors", "hex_to_rgb255", "points_object", "lines_object", "background_object",
            "geometry_bytes", "world_from_cam", "time_fractions", "frustum_vertices", "compute_fit", "robust_box",
-           "nearest_camera_distance", "home_camera_position", "view_centering", "screen_box", "VIEW_DIRECTION", "FIT_PERCENTILES",
+           "nearest_camera_distance", "home_camera_position", "view_centering", "screen_box", "VIEW_DIRECTION",
+           "FIT_PERCENTILES",
            "display_from_map", "keyframes_object", "path_object", "path_vertex_times", "directions_object",
            "current_frame_object", "track_lines_object", "track_point_object"]

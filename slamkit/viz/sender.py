@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import (BACKGROUND_RADIUS, background_object, current_frame_object,
-                    directions_object, display_from_map, geometry_bytes, home_camera_position, keyframes_object, path_object,
-                    path_vertex_times, points_object, recency_colors, track_lines_object, track_point_object)
+from .scene import (BACKGROUND_RADIUS, background_object, current_frame_object, directions_object, display_from_map,
+                    geometry_bytes, home_camera_position, keyframes_object, path_object, path_vertex_times,
+                    points_object, recency_colors, track_lines_object, track_point_object)
 from .settings import ViewSettings
 from .shown import ShownMap
 
