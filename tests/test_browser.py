@@ -341,7 +341,10 @@ def test_step_through_notebook_in_chromium(lab):
             diff_more = np.abs(after - middle).mean(axis=2)
             assert (diff_more > 30).mean() > 0.0005, "the 3D view did not change after the paused part"
             # the page itself, for a look
+            app.scroll_into_view_if_needed()
             page.screenshot(path=str(tmp / "page.png"), full_page=False)
+            if os.environ.get("SLAMKIT_SCREENSHOTS"):
+                shutil.copy(tmp / "page.png", Path(os.environ["SLAMKIT_SCREENSHOTS"]) / "page.png")
             (tmp / "scene.json").write_text(json.dumps({"summary": s, "scene": scene, "geometry": geometry}))
             print("geometry:", geometry)
         finally:
