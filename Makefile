@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 OUT    ?= runs/demo
 
-.PHONY: demo test install bench clean
+.PHONY: demo test install bench clean lab
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,10 @@ test: install
 
 bench: install
 	$(PY) benchmarks/bench_slam.py
+
+# JupyterLab (in the test extra) from the project's venv, on 127.0.0.1 only, opened on the notebooks folder
+lab: install
+	$(PY) -m jupyter lab --ip=127.0.0.1 --notebook-dir=notebooks
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -1,10 +1,14 @@
 """The step-through notebook in a real browser: JupyterLab + headless Debian chromium driven by Playwright.
 
-Opens ``02_step_through`` in JupyterLab on a loopback port, runs all cells, then uses the app as a person
-would: Step three frames, drag the flow-threshold slider (the app must say the change is pending until
-Reset), Reset, Run, Pause (the kernel must stay responsive during the run), Run to the end. Inside the
-meshcat viewer's iframe it counts the three.js scene's points and keyframe frustums against the app's map,
-and compares screenshots of the 3D view before and after the run.
+Opens ``02_step_through`` in JupyterLab on a loopback port, runs all cells (Run All must end on a populated
+app), then uses the app as a person would: Draw matches, clip the map, Reset (the match picture, its label and
+the clip range must go), Step three frames, drag the flow-threshold slider (the app must say the change is
+pending until Reset), Reset, Run, Pause (the kernel must stay responsive during the run), Run to the end.
+Inside the meshcat viewer's iframe it counts the three.js scene's points and keyframe frustums against the
+app's map, checks that the current-frame marker sits at the end of the drawn path after the run (the final
+bundle adjustment moved it) and that the map's projected 5-95 % box covers at least half of the viewer with
+the camera the app set, and compares screenshots of the 3D view before and after the run. No output may
+show raw HTML text.
 
 Skipped, with the reason, when chromium (``/usr/bin/chromium``), Playwright (Python) or JupyterLab is not
 installed. Screenshots go to the test's temporary folder (and to ``$SLAMKIT_SCREENSHOTS`` when set).
@@ -120,6 +124,81 @@ SCENE_JS = """() => {
 }"""
 
 
+GEOMETRY_JS = """() => {
+    const root = viewer.scene.getObjectByName("meshcat").getObjectByName("slamkit");
+    const cam = viewer.camera;
+    cam.updateMatrixWorld(true);
+    const out = {camera: Array.from(cam.matrixWorld.elements), proj: Array.from(cam.projectionMatrix.elements),
+                 aspect: cam.aspect, fov: cam.fov,
+                 points: [], path: null, current: null, current_visible: false};
+    if (!root) return out;
+    root.updateMatrixWorld(true);
+    const pts = root.getObjectByName("points");
+    if (pts) pts.traverse(o => { if (o.type === "Points" && o.visible)
+        out.points.push({m: Array.from(o.matrixWorld.elements),
+                         p: Array.from(o.geometry.attributes.position.array)}); });
+    const path = root.getObjectByName("path");
+    if (path) path.traverse(o => { if (o.type === "LineSegments")
+        out.path = {m: Array.from(o.matrixWorld.elements), p: Array.from(o.geometry.attributes.position.array)}; });
+    const cur = root.getObjectByName("current");
+    if (cur) cur.traverse(o => { if (o.type === "LineSegments") {
+        out.current = Array.from(o.matrixWorld.elements);
+        let v = true; for (let a = o; a; a = a.parent) v = v && a.visible;
+        out.current_visible = v; } });
+    return out;
+}"""
+
+
+def _mat(elements) -> np.ndarray:
+    return np.array(elements, np.float64).reshape(4, 4).T  # three.js stores column-major
+
+
+def _world(obj) -> np.ndarray:
+    xyz = np.array(obj["p"], np.float64).reshape(-1, 3)
+    M = _mat(obj["m"])
+    return xyz @ M[:3, :3].T + M[:3, 3]
+
+
+def _check_geometry(viewer_frame, frame_el) -> dict:
+    """What a student sees after a run to the end: the marker at the end of the path, the map filling the view."""
+    frame_el.scroll_into_view_if_needed()
+    time.sleep(0.6)  # the viewer renders (and its camera moves) on the next animation frame
+    g = _wait(lambda: (lambda g: g if g["points"] and g["path"] and g["current"] else None)(
+        viewer_frame.evaluate(GEOMETRY_JS)), 30, "the map, the path and the current frame in the viewer")
+    path_end = _world(g["path"])[-1]  # the last vertex of the last segment: the last posed frame
+    marker = _mat(g["current"])[:3, 3]
+    points = np.concatenate([_world(o) for o in g["points"]])
+    extent = np.ptp(np.percentile(points, [5, 95], axis=0), axis=0).max()
+    gap = float(np.linalg.norm(marker - path_end))
+    assert g["current_visible"] and gap < 0.01 * extent, (gap, extent)  # at the final pose, not the pre-BA one
+    view = np.linalg.inv(_mat(g["camera"]))  # world -> camera, from the camera's pose as the app set it
+
+    def ndc(xyz):
+        clip = np.c_[xyz, np.ones(len(xyz))] @ (_mat(g["proj"]) @ view).T
+        front = clip[:, 3] > 0
+        return clip[front, :2] / clip[front, 3:4], front
+
+    # the map's box on screen: the 5-95 % range of the points (a few far ones aside) and the whole camera path
+    on_screen, front = ndc(points)
+    path_ndc, _ = ndc(_world(g["path"]))
+    lo = np.minimum(np.percentile(on_screen, 5, axis=0), path_ndc.min(axis=0))
+    hi = np.maximum(np.percentile(on_screen, 95, axis=0), path_ndc.max(axis=0))
+    lo, hi = np.clip(lo, -1, 1), np.clip(hi, -1, 1)
+    coverage = float(np.prod(hi - lo) / 4)  # NDC spans [-1, 1] on both axes
+    info = {"marker_gap": gap, "extent": float(extent), "coverage": coverage, "aspect": g["aspect"],
+            "camera": _mat(g["camera"])[:3, 3].round(3).tolist(), "in_front": float(front.mean()),
+            "box": [lo.round(3).tolist(), hi.round(3).tolist()]}
+    print("framing:", info)
+    assert front.mean() > 0.95 and coverage >= 0.5, info
+    return info
+
+
+def _no_raw_html(page) -> None:
+    texts = page.locator(".jp-OutputArea-output").all_text_contents()
+    bad = [t for t in texts if "<span" in t or "<div" in t or "ViewSettings(" in t]
+    assert not bad, bad[:2]
+
+
 def _summary(page) -> dict:
     def num(sel):
         t = page.locator(f".slamkit-summary {sel}").first.text_content()
@@ -163,10 +242,32 @@ def test_step_through_notebook_in_chromium(lab):
             page.wait_for_function("() => window.jupyterapp.shell.currentWidget.sessionContext.session.kernel"
                                    ".connectionStatus === 'connected'", timeout=90_000)
             page.evaluate("() => window.jupyterapp.commands.execute('notebook:run-all-cells')")
-            # the last cell resets the app: a fresh run is ready
-            page.get_by_text("flow threshold now:").first.wait_for(timeout=150_000)
+            # the last cell reruns the app with the pending flow threshold: Run All ends on a populated app
+            page.get_by_text("keyframes with flow threshold 0.05:").first.wait_for(timeout=240_000)
             app = page.locator(".slamkit-app").first
             app.wait_for()
+            populated = _wait(lambda: (lambda s: s if s["frames"] == PARAMS["max_frames"] else None)(_summary(page)),
+                              30, "the populated app")
+            assert populated["keyframes"] >= 3 and populated["points"] > 300
+            _no_raw_html(page)
+            map_frame_el = page.locator(".slamkit-map-view iframe").first
+            map_frame_el.wait_for()
+            viewer_frame = next(f for f in page.frames if "/static/" in f.url)
+            viewer_frame.wait_for_function("() => typeof viewer !== 'undefined'")
+            geometry = {"run_all": _check_geometry(viewer_frame, map_frame_el)}
+
+            # --- Draw matches and a clip range, then Reset: both belong to the discarded run and must go
+            page.locator("button.slamkit-matches-button").first.click()
+            _wait(lambda: "observe the same 3D points" in (page.locator(".slamkit-match-label").first.text_content()
+                                                          or ""), 30, "the keyframe matches")
+            match_img = page.locator("img.slamkit-match-image").first
+            _wait(lambda: match_img.evaluate("e => e.naturalWidth") > 0, 30, "the match picture")
+            page.locator(".slamkit-clip input[type=checkbox]").first.check()
+            page.locator("button.slamkit-reset-button").first.click()
+            _wait(lambda: _summary(page)["frames"] == 0, 60, "the reset")
+            _wait(lambda: match_img.evaluate("e => e.naturalWidth") == 0, 30, "the match picture to be cleared")
+            assert (page.locator(".slamkit-match-label").first.text_content() or "").strip() == ""
+            assert not page.locator(".slamkit-clip input[type=checkbox]").first.is_checked()
             assert _summary(page)["frames"] == 0
 
             # --- Step: three frames, one per click
@@ -190,7 +291,7 @@ def test_step_through_notebook_in_chromium(lab):
             m = re.search(r"flow threshold ([0-9]+\.[0-9]+) → ([0-9]+\.[0-9]+)", text)
             assert m and "takes effect on Reset" in text, text
             running, new_threshold = float(m.group(1)), float(m.group(2))
-            assert running == 0.08 and new_threshold > running  # the notebook's last cells set 0.08
+            assert running == 0.08 and new_threshold > running  # the notebook's last cells ran with 0.08
             step.click()  # the running config is untouched: still stepping with the old threshold
             _wait(lambda: _summary(page)["frames"] == 4, 60, "frame 4")
             assert m.group(0) in page.locator(".slamkit-pending-text").first.text_content()
@@ -199,11 +300,6 @@ def test_step_through_notebook_in_chromium(lab):
             page.locator("button.slamkit-reset-button").first.click()
             _wait(lambda: _summary(page)["frames"] == 0 and page.locator(".slamkit-pending-text").count() == 0,
                   60, "the reset")
-
-            map_frame_el = page.locator(".slamkit-map-view iframe").first
-            map_frame_el.wait_for()
-            viewer_frame = next(f for f in page.frames if "/static/" in f.url)
-            viewer_frame.wait_for_function("() => typeof viewer !== 'undefined'")
             empty = viewer_frame.evaluate(SCENE_JS)
             assert empty == {"points": 0, "groups": 0, "frustums": 0}, empty
             before = _shot(page, map_frame_el, tmp / "map_before_run.png")
@@ -235,6 +331,8 @@ def test_step_through_notebook_in_chromium(lab):
             assert scene["points"] == s["points"] == s["scene-points"]
             assert scene["frustums"] == s["keyframes"] == s["scene-keyframes"]
             after = _shot(page, map_frame_el, tmp / "map_after_run.png")
+            geometry["run_to_the_end"] = _check_geometry(viewer_frame, map_frame_el)
+            _no_raw_html(page)
 
             # --- the rendered view changed
             assert before.shape == after.shape
@@ -243,7 +341,11 @@ def test_step_through_notebook_in_chromium(lab):
             diff_more = np.abs(after - middle).mean(axis=2)
             assert (diff_more > 30).mean() > 0.0005, "the 3D view did not change after the paused part"
             # the page itself, for a look
+            app.scroll_into_view_if_needed()
             page.screenshot(path=str(tmp / "page.png"), full_page=False)
-            (tmp / "scene.json").write_text(json.dumps({"summary": s, "scene": scene}))
+            if os.environ.get("SLAMKIT_SCREENSHOTS"):
+                shutil.copy(tmp / "page.png", Path(os.environ["SLAMKIT_SCREENSHOTS"]) / "page.png")
+            (tmp / "scene.json").write_text(json.dumps({"summary": s, "scene": scene, "geometry": geometry}))
+            print("geometry:", geometry)
         finally:
             browser.close()

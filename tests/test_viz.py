@@ -191,8 +191,13 @@ def test_map_view_scene_matches_the_map(run):
     assert np.array_equal(view.point_ids(), np.sort(ids))
     assert counts["keyframes"] == m.num_keyframes
     assert counts["path"] == len(slam.trajectory())
-    last = slam.last_result
-    assert counts["current"] == int(last.status == "tracked" and not last.is_keyframe)  # tracked non-key frames
+    # after finish() (a global BA that moves every pose) the current frame sits at the last frame's final pose
+    assert counts["current"] == 1
+    final = np.linalg.inv(slam.pose_of(len(slam.records) - 1))
+    assert np.allclose(view._map.current, final)
+    assert np.linalg.norm(final[:3, 3] - slam.trajectory().positions[-1]) < 1e-9
+    marker = scene_objects(view)["__properties__"]
+    assert marker.get("/meshcat/slamkit/current/frame", {}).get("visible", True) is True
 
     scene = scene_objects(view)
     groups = {p: o for p, o in scene.items() if p.startswith("/meshcat/slamkit/points/")}
@@ -494,16 +499,33 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert app.view.scene_counts()["keyframes"] == app.slam.slam_map.num_keyframes
         assert app.f_cur.value[:2] == b"\xff\xd8" and app.f_kf.value[:2] == b"\xff\xd8"
         assert "keyframe image id" in app.f_kf_label.value
+        kfs = sorted(app.slam.slam_map.keyframes)
+        assert (app.m_kf1.value, app.m_kf2.value) == (kfs[-2], kfs[-1])  # the latest two keyframes
+        final = np.linalg.inv(app.slam.pose_of(len(app.slam.records) - 1))  # after the final global BA
+        assert np.allclose(app.view._map.current, final)
+        assert "<b>50 px</b> here (f = 500 px)" in app.w_help.value and "map units" in app.v_units.value
         img = app.draw_keyframe_matches()
         assert img is not None and "observe the same 3D points" in app.m_label.value
+        # the track choices: the longest tracks of the map, longest first
+        longest = [p for _, p in app.v_track.options[1:]]
+        lengths = [app.slam.slam_map.reconstruction.point3D(p).track.length() for p in longest]
+        assert lengths == sorted(lengths, reverse=True) and lengths[0] == max(
+            app.slam.slam_map.reconstruction.point3D(p).track.length() for p in app.view.point_ids())
+        app.v_track.value = longest[0]
+        assert app.view.scene_counts()["track"] >= 2 and "keyframes that see it" in app.v_track_info.value
         app.v_clip_on.value = True
         assert app.view.settings.clip is not None
-        app.v_clip_on.value = False
         saved = app.save()
         assert (saved / "trajectory_tum.txt").is_file() and (saved / "sparse").is_dir()
         app.load()
-        assert "showing the saved run" in app.w_status.value
-        assert app.export_html().is_file()
+        assert "showing the saved run" in app.w_status.value and "<" not in app.status_text
+        page = app.export_html().read_text()
+        assert "<title>slamkit map: " in page and "MeshCat</title>" not in page and "slamkit-caption" in page
+        # Reset forgets the discarded run's picture, clip range and track
+        app.reset()
+        assert app.m_image.value == b"" and app.m_label.value == ""
+        assert not app.v_clip_on.value and app.view.settings.clip is None and app.v_track.value == -1
+        assert app.view.settings.track_point == -1 and list(app.m_kf1.options) == []
         # an unknown data source is reported, not raised
         app.w_source.value = str(tmp_path / "missing")
         assert "does not exist" in app.w_status.value

@@ -36,7 +36,8 @@ from ..sources import open_source
 from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
-from .meshcat_view import MapView
+from .explain import flow_help_html, scale_html
+from .meshcat_view import MapView, legend_text
 from .settings import ViewSettings
 
 DEFAULT_SOURCE = "default"
@@ -67,6 +68,8 @@ class SlamApp(AppWidgets):
         self._task: asyncio.Task | None = None
         self._running = False
         self._showing_run: Path | None = None
+        self._auto_pair = True
+        """The keyframe pair of "Draw matches" follows the latest two keyframes (until the user picks one)."""
         self.last_error: str | None = None
         """The traceback of the last error shown in the status line."""
         self._build_widgets(self.slam.config, self.source_spec, len(self.slam.source), out_dir, self.view.settings,
@@ -94,6 +97,8 @@ class SlamApp(AppWidgets):
         self.w_default.on_click(lambda _: setattr(self.w_source, "value", DEFAULT_SOURCE))
         self.w_source.observe(lambda _: self._guard(self._source_changed), "value")
         self.w_skip.observe(lambda _: self._guard(self._update_max_frames), "value")
+        for w in (self.m_kf1, self.m_kf2):
+            w.observe(lambda _: self._pair_chosen(), "value")
         for w in (self.w_max, self.w_init, self.w_flow, self.w_matches, self.w_features):
             w.observe(lambda _: self._show_pending(), "value")
         for w in (self.v_bg, self.v_path, self.v_kf, self.v_cur, self.v_pts, self.v_dirs, self.v_fscale,
@@ -111,7 +116,11 @@ class SlamApp(AppWidgets):
             self.last_error = traceback.format_exc()
 
     def _status(self, text: str, color: str = "#333") -> None:
+        self.status_text = text
         self.w_status.value = f'<span style="color:{color}">{html.escape(text)}</span>'
+
+    status_text: str = ""
+    """The status line as plain text (what ``w_status`` shows)."""
 
     # ------------------------------------------------------------------ pending settings
     def pending_config(self) -> SlamConfig:
@@ -276,15 +285,31 @@ class SlamApp(AppWidgets):
         self.flow_pairs = (np.empty((0, 2)), np.empty((0, 2)))
         self._reproj = float("nan")
         self._showing_run = None
+        self._clear_run_views()
         self.view.update(self.slam)
         self._refresh_all()
         self._status(f"reset: {len(self.slam)} frames of {self.source_spec} with the new settings")
 
+    def _clear_run_views(self) -> None:
+        """Forget what belonged to the discarded run: the keyframe-match picture and its label, the clip
+        range, the tracked point; the match pair follows the newest keyframes again."""
+        self.m_image.value = b""
+        self.m_label.value = ""
+        self._auto_pair = True
+        with self._holding_view_events():
+            self.v_clip_on.value = False
+            self.v_clip.min, self.v_clip.max, self.v_clip.value = 0, 1, (0, 1)
+            self.v_track.options, self.v_track.value = [("none", -1)], -1
+            self.m_kf1.options, self.m_kf2.options = [], []
+        self.view.configure(clip=None, track_point=-1)
+        self.v_track_info.value = ""
+
     def _finish(self) -> None:
         if not self.slam.finished:
-            self.slam.finish()
+            self.slam.finish()  # global BA: every pose moves; the view redraws the frames at their final poses
             self._reproj = self._reprojection_error()
             self.view.update(self.slam)
+            self.view.reset_camera()
             self._refresh_all()
             self._status("done: the last global bundle adjustment ran; Save writes the map and trajectory")
 
@@ -309,7 +334,11 @@ class SlamApp(AppWidgets):
     def export_html(self, path: str | Path | None = None) -> Path:
         """The 3D view as one standalone HTML file (default: ``<output folder>/map.html``)."""
         path = Path(path or Path(self.w_out.value) / "map.html")
-        self.view.export_html(path)
+        n = self._summary()
+        run = self._showing_run if self._showing_run is not None else self.source_spec
+        caption = (f"{run}: {n['frames']} frames, {n['keyframes']} keyframes, {n['points']} points. "
+                   f"{legend_text()}")
+        self.view.export_html(path, title=f"slamkit map: {run}", caption=caption)
         self._status(f"3D view exported to {path}")
         return path
 
@@ -374,11 +403,15 @@ class SlamApp(AppWidgets):
         self.f_cur.value = fv.encode_image(img)
 
     def _refresh_view_controls(self) -> None:
-        """Ranges of the track and clip sliders and the keyframe lists follow the map."""
+        """The track choices, the clip range and the keyframe pair follow the map; units of the sizes."""
         ids = self.view.keyframe_ids
-        pids = self.view.point_ids()
         with self._holding_view_events():
-            self.v_track.max = int(pids[-1]) if len(pids) else 0
+            tracks = self.view.longest_tracks(30)
+            options = [("none", -1)] + [(f"point {p}: seen by {n} images", p) for p, n in tracks]
+            value = self.v_track.value if any(p == self.v_track.value for _, p in options) else -1
+            if list(self.v_track.options) != options:
+                self.v_track.options = options
+            self.v_track.value = value
             if len(ids):
                 lo, hi = int(ids[0]), int(ids[-1])
                 was_full = self.v_clip.value[1] >= self.v_clip.max
@@ -392,8 +425,23 @@ class SlamApp(AppWidgets):
                 self.m_kf1.options = opts
                 self.m_kf2.options = opts
                 if opts:
-                    self.m_kf1.value = v1 if v1 in opts else opts[max(0, len(opts) - 2)]
-                    self.m_kf2.value = v2 if v2 in opts else opts[-1]
+                    latest = opts[max(0, len(opts) - 2)], opts[-1]
+                    keep = not self._auto_pair and v1 in opts and v2 in opts
+                    self.m_kf1.value, self.m_kf2.value = (v1, v2) if keep else latest
+        self._refresh_help()
+
+    def _refresh_help(self) -> None:
+        """The keyframe rule with the running thresholds in pixels, and the 3D view's sizes in map units."""
+        kf = self.slam.config.keyframes
+        camera = getattr(self.slam, "camera", None) or self.slam.source.camera  # the config's intrinsics, if given
+        self.w_help.value = flow_help_html(float(camera.fx), kf.flow_threshold, kf.min_tracked_matches)
+        sc = self.view.scale_numbers()
+        self.v_units.value = (scale_html(sc["extent"], sc["frustum_depth"], sc["point_diameter"], sc["view_depth"])
+                              if len(self.view.keyframe_ids) else "")
+
+    def _pair_chosen(self) -> None:
+        if not getattr(self, "_hold", False):
+            self._auto_pair = False
 
     @contextlib.contextmanager
     def _holding_view_events(self):
@@ -407,22 +455,14 @@ class SlamApp(AppWidgets):
         if getattr(self, "_hold", False):
             return
         clip = tuple(int(v) for v in self.v_clip.value) if self.v_clip_on.value else None
-        track = int(self.v_track.value)
-        pids = self.view.point_ids()
-        if track >= 0 and len(pids):
-            pos = min(np.searchsorted(pids, track), len(pids) - 1)
-            snapped = int(pids[pos])
-            self.v_track_info.value = (f"point {snapped}" + (f" (next existing id after {track})"
-                                                             if snapped != track else ""))
-            track = snapped
-        else:
-            self.v_track_info.value = "" if track < 0 else "no map points"
+        track = int(self.v_track.value if self.v_track.value is not None else -1)
         self.view.configure(background=self.v_bg.value, show_path=self.v_path.value, show_keyframes=self.v_kf.value,
                             show_current=self.v_cur.value, show_points=self.v_pts.value,
                             show_directions=self.v_dirs.value, frustum_scale=float(self.v_fscale.value),
                             point_size=float(self.v_psize.value), track_point=track, clip=clip)
-        if track >= 0:
-            self.v_track_info.value += f": seen by {self.view.scene_counts().get('track', 0)} keyframes"
+        self.v_track_info.value = (f"lines to the {self.view.scene_counts().get('track', 0)} keyframes that see it"
+                                   if track >= 0 else "")
+        self._refresh_help()
         self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
 
     def view_settings(self) -> ViewSettings:

@@ -16,6 +16,7 @@ from IPython.display import display
 
 from ..config import SlamConfig, feature_pipeline_status
 from ..features.learned import INSTALL_HINT, torch_available
+from .explain import legend_html
 from .settings import ViewSettings
 
 LABELS = {
@@ -77,7 +78,7 @@ class AppWidgets:
         self._build_run_controls(config, source_spec, source_len, out_dir)
         self._build_view_controls(view_settings)
         self._build_frame_view()
-        self.map_html = W.HTML(map_html, layout=W.Layout(width="100%"))
+        self.map_html = W.HTML(map_html)
         self.widget = self._layout()
 
     def _build_run_controls(self, cfg: SlamConfig, source_spec: str, source_len: int, out_dir) -> None:
@@ -106,6 +107,7 @@ class AppWidgets:
         self.w_features_note = W.HTML(unavailable_html(unavailable), layout=W.Layout(max_width="640px"))
         self.w_out = W.Text(value=str(out_dir), description="output folder", style=style, layout=wide)
         self._build_buttons()
+        self.w_help = W.HTML()
         self.w_pending = W.HTML(layout=W.Layout(min_height="22px"))
         self.w_status = W.HTML(layout=W.Layout(min_height="22px"))
 
@@ -142,14 +144,17 @@ class AppWidgets:
                                          continuous_update=False)
         self.v_psize = W.FloatLogSlider(value=vs.point_size, base=10, min=-1, max=1, step=0.05,
                                         description="point size", style=vstyle, layout=vl, continuous_update=False)
-        self.v_track = W.IntSlider(value=-1, min=-1, max=0, description="track point id", style=vstyle, layout=vl,
-                                   continuous_update=False)
+        self.v_track = W.Dropdown(options=[("none", -1)], value=-1, description="track a point", style=vstyle,
+                                  layout=vl, tooltip="the map points seen by most images, longest track first")
         self.v_track_info = W.HTML()
         self.v_clip_on = W.Checkbox(value=False, description="clip to keyframes", indent=False,
                                     layout=W.Layout(width="140px"))
         self.v_clip = W.IntRangeSlider(value=(0, 1), min=0, max=1, description="", layout=W.Layout(width="300px"),
                                        continuous_update=False)
-        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="130px"))
+        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="130px"),
+                                 tooltip="frame the whole map again")
+        self.v_units = W.HTML()
+        self.v_legend = W.HTML(legend_html())
 
     def _build_frame_view(self) -> None:
         self.f_kf = W.Image(format="jpeg", layout=W.Layout(width="240px"))
@@ -160,7 +165,8 @@ class AppWidgets:
         self.m_kf1 = W.Dropdown(description="keyframes", options=[], layout=W.Layout(width="200px"),
                                 style={"description_width": "70px"})
         self.m_kf2 = W.Dropdown(options=[], layout=W.Layout(width="110px"))
-        self.b_matches = W.Button(description="Draw matches", icon="random", layout=W.Layout(width="130px"))
+        self.b_matches = W.Button(description="Draw matches", icon="random", layout=W.Layout(width="160px"),
+                                  tooltip="the keypoints the two keyframes share through 3D points")
         self.m_image = W.Image(format="jpeg", layout=W.Layout(width="640px"))
         self.m_label = W.HTML()
 
@@ -169,7 +175,7 @@ class AppWidgets:
         CSS classes name the parts a browser test looks for."""
         controls = W.VBox([
             W.HBox([self.w_source, self.w_default]), self.w_skip, self.w_max, self.w_init, self.w_flow,
-            self.w_matches, self.w_features, self.w_features_note, self.w_out,
+            self.w_matches, self.w_help, self.w_features, self.w_features_note, self.w_out,
             W.HBox([self.b_step, self.b_run, self.b_reset, self.b_save, self.b_load, self.b_html]),
             self.w_pending, self.w_status,
         ])
@@ -179,10 +185,11 @@ class AppWidgets:
             W.HBox([self.v_fscale, self.v_psize]),
             W.HBox([self.v_track, self.v_track_info]),
             W.HBox([self.v_clip_on, self.v_clip]),
+            self.v_units, self.v_legend,
         ])
         frame = W.VBox([W.HTML("<b>last keyframe</b>"), self.f_kf, self.f_kf_label, W.HTML("<b>current frame</b>"),
                         self.f_cur], layout=W.Layout(width=f"{self.frame_width + 20}px"))
-        map_box = W.VBox([self.map_html, settings], layout=W.Layout(flex="1 1 auto", min_width="420px"))
+        map_box = W.VBox([self.map_html, settings], layout=W.Layout(flex="0 1 auto", min_width="420px"))
         widget = W.VBox([
             controls,
             W.HBox([map_box, frame]),
@@ -192,7 +199,9 @@ class AppWidgets:
         widget.add_class("slamkit-app")
         for w, cls in ((self.b_step, "slamkit-step-button"), (self.b_run, "slamkit-run-button"),
                        (self.b_reset, "slamkit-reset-button"), (self.w_flow, "slamkit-flow-threshold"),
-                       (self.w_pending, "slamkit-pending"), (self.map_html, "slamkit-map-view")):
+                       (self.w_pending, "slamkit-pending"), (self.map_html, "slamkit-map-view"),
+                       (self.b_matches, "slamkit-matches-button"), (self.m_image, "slamkit-match-image"),
+                       (self.m_label, "slamkit-match-label"), (self.v_clip_on, "slamkit-clip")):
             w.add_class(cls)
         return widget
 

@@ -22,6 +22,7 @@ camera back behind and above the first keyframe.
 
 from __future__ import annotations
 
+import html
 import os
 import time
 from dataclasses import dataclass, replace
@@ -44,6 +45,26 @@ from .snapshot import (MapState, read_camera, read_dirty_points, read_every_poin
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..pipeline import Slam
+
+
+DEFAULT_TITLE = "slamkit map"
+"""Title of an exported 3D view."""
+
+
+def legend_text() -> str:
+    """What the colours of the 3D view mean (one line, plain text)."""
+    return ("map points in their image colours · keyframe frustums and camera path from green (first) through "
+            "yellow to red (last) · current frame blue · selected track magenta · drag to orbit, scroll to zoom")
+
+
+def captioned_html(page: str, title: str, caption: str) -> str:
+    """meshcat's static page with ``title`` instead of "MeshCat" and ``caption`` (plain text, escaped) in a
+    box over the top left of the viewer."""
+    page = page.replace("<title>MeshCat</title>", f"<title>{html.escape(title)}</title>", 1)
+    box = (f'<div class="slamkit-caption" style="position:fixed;top:8px;left:8px;max-width:45%;z-index:10;'
+           f'font:12px sans-serif;background:rgba(255,255,255,0.85);padding:6px 10px;border-radius:4px">'
+           f'<b>{html.escape(title)}</b><br>{html.escape(caption)}</div>')
+    return page.replace("<body>", "<body>" + box, 1)
 
 
 @dataclass
@@ -103,7 +124,8 @@ class MapView:
     """
 
     def __init__(self, vis=None, settings: ViewSettings | None = None, *, full_read_points: int = 20_000,
-                 move_tolerance: float = 1e-4, server: MeshcatServer | None = None, name: str = "slamkit"):
+                 move_tolerance: float = 1e-4, server: MeshcatServer | None = None, name: str = "slamkit",
+                 aspect: float = 4 / 3):
         self._server: MeshcatServer | None = None
         if vis is None:
             if server is None:
@@ -115,6 +137,8 @@ class MapView:
         self.settings = (settings or ViewSettings()).validate()
         self.full_read_points = int(full_read_points)
         self.move_tolerance = float(move_tolerance)
+        self.aspect = float(aspect)
+        """Width / height of the viewer (:meth:`iframe_html` draws it so); the home camera frames the map for it."""
         self.stats = UpdateStats()
         self.closed = False
         self._map = ShownMap()
@@ -141,8 +165,10 @@ class MapView:
         return self._out.url
 
     def iframe_html(self, height: int = 480) -> str:
-        """An ``<iframe>`` showing the live viewer (for an ipywidgets HTML widget)."""
-        return (f'<div style="height:{int(height)}px;width:100%;overflow:hidden;resize:both">'
+        """An ``<iframe>`` showing the live viewer (for an ipywidgets HTML widget), ``height`` pixels high and
+        :attr:`aspect` times as wide (the home camera frames the map for that shape)."""
+        width = int(round(height * self.aspect))
+        return (f'<div style="height:{int(height)}px;width:{width}px;max-width:100%;overflow:hidden;resize:both">'
                 f'<iframe class="slamkit-map" src="{self.url}" style="width:100%;height:100%;border:none">'
                 f'</iframe></div>')
 
@@ -150,14 +176,15 @@ class MapView:
         """The live viewer, inline in a notebook (the last expression of a cell)."""
         return HTML(self.iframe_html(height))
 
-    def static_html(self) -> str:
-        """The current scene as one self-contained HTML page (the viewer's JavaScript included)."""
-        return self._out.static_html()
+    def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None) -> str:
+        """The current scene as one self-contained HTML page (the viewer's JavaScript included), titled
+        ``title``, with ``caption`` (default: :func:`legend_text`) over the top left of the viewer."""
+        return captioned_html(self._out.static_html(), title, legend_text() if caption is None else caption)
 
-    def export_html(self, path: str | os.PathLike) -> Path:
+    def export_html(self, path: str | os.PathLike, title: str = DEFAULT_TITLE, caption: str | None = None) -> Path:
         """Write :meth:`static_html` to ``path`` (atomically) for reports; opens from file:// offline."""
         path = Path(path)
-        atomic_write_text(path, self.static_html())
+        atomic_write_text(path, self.static_html(title, caption))
         return path
 
     # ------------------------------------------------------------------ public drawing API
@@ -249,23 +276,26 @@ class MapView:
         shown.path_t, shown.path_c = state.path_times.copy(), state.path_centers.copy()
         refit = shown.refit_needed(full)
         if refit:
-            shown.fit = refit if isinstance(refit, tuple) else shown.compute_fit()
+            shown.set_fit(refit if isinstance(refit, tuple) else shown.compute_fit(), self.aspect)
             st.refit = True
         return _Diff(changes.groups, keyframes.changed, path_changed, bool(refit), new_map)
 
     def _send_diff(self, diff: _Diff, current: np.ndarray | None, st: UpdateStats) -> None:
         """Send what changed: fit, point groups, cameras and path, the current frame, the track."""
         out, shown, settings = self._out, self._map, self.settings
+        groups = diff.groups
         if diff.refit:
             out.send_fit(shown)
-        if diff.groups:
-            st.chunks_sent, st.chunks_deleted, st.points_sent = out.send_point_groups(shown, settings, diff.groups)
+            if not np.isclose(shown.point_size_units(settings), out.point_size, rtol=0.15):
+                groups = frozenset(shown.points.groups() | set(out.chunks))  # the points' size follows the scene
+        if groups:
+            st.chunks_sent, st.chunks_deleted, st.points_sent = out.send_point_groups(shown, settings, groups)
         if diff.keyframes_changed or diff.path_changed or diff.refit:
             out.send_cameras(shown, settings)
         if diff.new_map or diff.refit:
             out.send_current_geometry(shown, settings)
         if diff.new_map:
-            out.send_camera_home()
+            out.send_camera_home(shown, self.aspect)
         shown.current = current
         out.send_current_pose(shown, settings)
         if settings.track_point >= 0 and (diff.groups or diff.keyframes_changed):
@@ -328,13 +358,14 @@ class MapView:
         """Fit the whole map into the viewer and put the viewer's camera back to its overview position."""
         out, shown = self._out, self._map
         if shown.key is not None:
-            shown.fit = shown.compute_fit()
+            shown.set_fit(shown.compute_fit(), self.aspect)
             out.send_fit(shown)
+            out.send_point_groups(shown, self.settings, shown.points.groups() | set(out.chunks))
             out.send_cameras(shown, self.settings)
             out.send_current_geometry(shown, self.settings)
             out.send_current_pose(shown, self.settings)
             out.send_track(shown, self.settings)
-        out.send_camera_home()
+        out.send_camera_home(shown, self.aspect)
 
     # ------------------------------------------------------------------ what is in the scene
     def scene_counts(self) -> dict[str, int]:
@@ -370,12 +401,31 @@ class MapView:
         alive = points.alive()
         return dict(zip(points.pid[alive].tolist(), points.intro[alive].tolist()))
 
+    def scale_numbers(self) -> dict[str, float]:
+        """Map units: the fitted extent, the keyframe frustums' depth, the points' diameter and the median
+        distance from a point to its nearest camera (what the point size is relative to)."""
+        shown = self._map
+        return {"extent": shown.map_extent, "frustum_depth": self.settings.frustum_depth(shown.map_extent),
+                "point_diameter": self.settings.point_diameter(shown.view_depth), "view_depth": shown.view_depth}
+
+    def longest_tracks(self, n: int = 30) -> list[tuple[int, int]]:
+        """(point id, number of images observing it) of the ``n`` map points in the view seen by most images,
+        longest first (ties: lower id first)."""
+        rec = self._map.reconstruction
+        if rec is None or self.num_points == 0:
+            return []
+        ids = self.point_ids()
+        lengths = np.array([rec.point3D(int(p)).track.length() if rec.exists_point3D(int(p)) else 0 for p in ids])
+        order = np.lexsort((ids, -lengths))[:n]
+        return [(int(ids[i]), int(lengths[i])) for i in order if lengths[i] > 0]
+
     @property
     def display_from_map(self) -> np.ndarray:
         """(4, 4) the similarity from map coordinates to the viewer's (the transform of ``/slamkit``)."""
         return display_from_map(self._map.fit)
 
 
-__all__ = ["MapView", "MapState", "ViewSettings", "UpdateStats", "state_from_slam", "state_from_run",
+__all__ = ["MapView", "MapState", "legend_text", "captioned_html", "DEFAULT_TITLE", "ViewSettings", "UpdateStats",
+           "state_from_slam", "state_from_run",
            "recency_colors", "DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR",
            "TRACK_COLOR", "hex_to_rgb255"]

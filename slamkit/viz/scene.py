@@ -133,19 +133,130 @@ def frustum_vertices(world_from_cam: np.ndarray, camera: Camera | None, depth: f
     return pts[:, idx, :].reshape(-1, 3)
 
 
+FIT_PERCENTILES = (5.0, 95.0)
+"""The display fit frames this percentile range of the points (and of the camera centres): a few far
+points (a window, the sky, a bad triangulation) do not shrink the map to a corner of the viewer."""
+
+
+def robust_box(xyz: np.ndarray, percentiles: tuple[float, float] = FIT_PERCENTILES) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (3,), hi (3,)) the per-axis percentile box of (N, 3) positions (min / max below 20 of them)."""
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    xyz = xyz[np.all(np.isfinite(xyz), axis=1)]
+    if len(xyz) == 0:
+        return np.full(3, np.inf), np.full(3, -np.inf)
+    if len(xyz) < 20:
+        return xyz.min(axis=0), xyz.max(axis=0)
+    lo, hi = np.percentile(xyz, percentiles, axis=0)
+    return lo, hi
+
+
 def compute_fit(points: np.ndarray, centers: np.ndarray, path_centers: np.ndarray) -> tuple[np.ndarray, float]:
-    """(centre (3,), extent) of the box around the points (2-98 percentile when 20 or more), the keyframe
-    centres and the path; extent is the box's largest side in map units (1 when degenerate)."""
-    pts = np.asarray(points, np.float64)
-    if len(pts) >= 20:
-        lo, hi = np.percentile(pts, [2, 98], axis=0)
-        pts = pts[np.all((pts >= lo) & (pts <= hi), axis=1)]
-    allp = np.concatenate([pts, centers, path_centers]) if len(pts) + len(centers) else np.zeros((1, 3))
-    lo, hi = allp.min(axis=0), allp.max(axis=0)
+    """(centre (3,), extent) of the box around the 5-95 percentile range of the points and of the camera
+    centres (keyframes and path); extent is the box's largest side in map units (1 when degenerate)."""
+    cams = np.concatenate([np.asarray(centers, np.float64).reshape(-1, 3),
+                           np.asarray(path_centers, np.float64).reshape(-1, 3)])
+    boxes = [robust_box(points), robust_box(cams)]
+    lo = np.minimum(boxes[0][0], boxes[1][0])
+    hi = np.maximum(boxes[0][1], boxes[1][1])
+    if not np.all(np.isfinite(lo)) or not np.all(np.isfinite(hi)):
+        return np.zeros(3), 1.0
     extent = float(np.max(hi - lo))
     if not np.isfinite(extent) or extent <= 1e-9:
         extent = 1.0
     return (lo + hi) / 2, extent
+
+
+def nearest_camera_distance(points: np.ndarray, centers: np.ndarray, sample: int = 2000, seed: int = 0) -> float:
+    """Median distance (map units) from a map point to its nearest camera centre, over a random sample of
+    ``sample`` points: the depth at which the map was seen, so a point size relative to it looks the same
+    on any map whatever its (arbitrary, monocular) scale. NaN without points or cameras."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    cams = np.asarray(centers, np.float64).reshape(-1, 3)
+    if len(pts) == 0 or len(cams) == 0:
+        return float("nan")
+    if len(pts) > sample:
+        pts = pts[np.random.default_rng(seed).choice(len(pts), sample, replace=False)]
+    d2 = ((pts[:, None, :] - cams[None, :, :]) ** 2).sum(axis=2).min(axis=1)
+    return float(np.median(np.sqrt(d2)))
+
+
+VIEW_DIRECTION = np.array([0.25, -0.9, 0.55]) / np.linalg.norm([0.25, -0.9, 0.55])
+"""Direction from the map's centre to the viewer's home camera (display axes: behind and above the first
+keyframe, a little to the right)."""
+
+VIEWER_FOV_DEG = 75.0
+"""Vertical field of view of meshcat's default camera, degrees."""
+
+
+def _view_axes(direction: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d, right, up) unit vectors of a camera looking at the origin from ``direction``, z up."""
+    d = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+    right = np.cross(d, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    return d, right, np.cross(right, d)
+
+
+def screen_box(points: np.ndarray, cameras: np.ndarray, position: np.ndarray, aspect: float,
+               fov_deg: float = VIEWER_FOV_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """(lo (2,), hi (2,)) normalized device coordinates (the viewer spans -1..1) of the 5-95 percentile box
+    of the projected ``points`` (N, 3) joined with every camera centre ``cameras`` (M, 3), seen from
+    ``position`` looking at the origin, z up."""
+    d, right, up = _view_axes(position)
+    dist, t = float(np.linalg.norm(position)), np.tan(np.radians(fov_deg) / 2)
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for xyz, q in ((points, FIT_PERCENTILES), (cameras, (0.0, 100.0))):
+        if len(xyz):
+            depth = np.maximum(dist - xyz @ d, 1e-3)
+            xy = np.stack([(xyz @ right) / (depth * t * aspect), (xyz @ up) / (depth * t)], axis=1)
+            a, b = np.percentile(xy, q, axis=0)
+            lo, hi = np.minimum(lo, a), np.maximum(hi, b)
+    return lo, hi
+
+
+def home_camera_position(points_display: np.ndarray, aspect: float, cameras_display: np.ndarray | None = None,
+                         fill: float = 0.85, direction: np.ndarray = VIEW_DIRECTION,
+                         fov_deg: float = VIEWER_FOV_DEG) -> np.ndarray:
+    """(3,) display-frame position of the viewer's camera, looking at the origin along ``-direction`` with z
+    up, at the distance where the 5-95 percentile box of the projected ``points_display`` (N, 3) and every
+    camera centre ``cameras_display`` (M, 3) reach ``fill`` of the way from the viewer's centre to its edge
+    (on the side and axis that bind; ``aspect`` = width / height), and in front of 98 % of the points and of
+    every camera."""
+    pts = np.asarray(points_display, np.float64).reshape(-1, 3)
+    cams = np.empty((0, 3)) if cameras_display is None else np.asarray(cameras_display, np.float64).reshape(-1, 3)
+    d = _view_axes(direction)[0]
+    if len(pts) + len(cams) == 0:
+        return d * DISPLAY_EXTENT * 1.1
+    # in front of 98 % of the points and of every camera: no point a few pixels from the eye
+    near = float(np.percentile(pts @ d, 98)) if len(pts) else -np.inf
+    if len(cams):
+        near = max(near, float(np.max(cams @ d)))
+    near += 0.05 * DISPLAY_EXTENT
+    lo, hi = near, near + 100 * DISPLAY_EXTENT
+    for _ in range(50):  # what the viewer sees shrinks as the camera backs away: bisect on it
+        mid = (lo + hi) / 2
+        box = screen_box(pts, cams, d * mid, aspect, fov_deg)
+        lo, hi = (mid, hi) if float(np.max(np.abs(box))) > fill else (lo, mid)
+    return d * hi
+
+
+def view_centering(points_display: np.ndarray, cameras_display: np.ndarray, aspect: float,
+                   direction: np.ndarray = VIEW_DIRECTION, fov_deg: float = VIEWER_FOV_DEG) -> np.ndarray:
+    """(3,) display-frame offset of the middle of what the home camera sees (:func:`screen_box`) from the
+    origin it looks at; moving the map by minus it centres the picture, so the map can fill more of the
+    viewer. Zero without points."""
+    pts = np.asarray(points_display, np.float64).reshape(-1, 3)
+    cams = np.asarray(cameras_display, np.float64).reshape(-1, 3)
+    if len(pts) + len(cams) == 0:
+        return np.zeros(3)
+    offset = np.zeros(3)
+    for _ in range(3):  # re-centre from the new camera distance (converges in two or three rounds)
+        pos = home_camera_position(pts - offset, aspect, cams - offset, direction=direction, fov_deg=fov_deg)
+        d, right, up = _view_axes(pos)
+        lo, hi = screen_box(pts - offset, cams - offset, pos, aspect, fov_deg)
+        depth = float(np.median(np.linalg.norm(pos) - np.concatenate([pts, cams]) @ d))
+        t = np.tan(np.radians(fov_deg) / 2)
+        offset = offset + (lo[0] + hi[0]) / 2 * depth * t * aspect * right + (lo[1] + hi[1]) / 2 * depth * t * up
+    return offset
 
 
 def display_from_map(fit: tuple[np.ndarray, float] | None) -> np.ndarray:
@@ -209,6 +320,8 @@ def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
 
 __all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR", "TRACK_COLOR",
            "Camera", "recency_colors", "hex_to_rgb255", "points_object", "lines_object", "background_object",
-           "geometry_bytes", "world_from_cam", "time_fractions", "frustum_vertices", "compute_fit",
+           "geometry_bytes", "world_from_cam", "time_fractions", "frustum_vertices", "compute_fit", "robust_box",
+           "nearest_camera_distance", "home_camera_position", "view_centering", "screen_box", "VIEW_DIRECTION",
+           "FIT_PERCENTILES",
            "display_from_map", "keyframes_object", "path_object", "path_vertex_times", "directions_object",
            "current_frame_object", "track_lines_object", "track_point_object"]

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import (BACKGROUND_RADIUS, DISPLAY_EXTENT, background_object, current_frame_object,
-                    directions_object, display_from_map, geometry_bytes, keyframes_object, path_object,
-                    path_vertex_times, points_object, recency_colors, track_lines_object, track_point_object)
+from .scene import (BACKGROUND_RADIUS, background_object, current_frame_object, directions_object, display_from_map,
+                    geometry_bytes, home_camera_position, keyframes_object, path_object, path_vertex_times,
+                    points_object, recency_colors, track_lines_object, track_point_object)
 from .settings import ViewSettings
 from .shown import ShownMap
 
@@ -44,6 +44,10 @@ class SceneSender:
         self.directions_stale = False
         """The keyframes changed while the viewing directions were hidden (sent when they are shown)."""
         self.current_shown: bool | None = None
+        self.point_size = float("nan")
+        """The point diameter last sent, viewer units."""
+        self.camera_position: np.ndarray | None = None
+        """(3,) the viewer's camera position last sent, viewer axes (x right, y forward, z up)."""
 
     def start_update(self) -> None:
         """Start counting one update's objects and bytes."""
@@ -86,9 +90,12 @@ class SceneSender:
         for name, on in settings.visibility().items():
             self.set_visible(name, on)
 
-    def send_camera_home(self) -> None:
-        """The viewer's camera behind and above the first keyframe, looking at the map's centre."""
-        offset = DISPLAY_EXTENT * np.array([0.25, -0.9, 0.55])  # viewer axes: x right, y forward, z up
+    def send_camera_home(self, shown: ShownMap, aspect: float) -> None:
+        """The viewer's camera behind and above the first keyframe, looking at the map's centre, as close as
+        frames the 5-95 % box of the points and cameras (``aspect``: the viewer's width / height)."""
+        points, cameras = shown.display_points()
+        offset = home_camera_position(points, aspect, cameras)  # viewer axes: x right, y forward, z up
+        self.camera_position = offset
         position = [float(offset[0]), float(offset[2]), float(-offset[1])]  # three.js is y-up
         self.vis[_VIEWER_CAMERA].set_property("position", position)
 
@@ -105,7 +112,7 @@ class SceneSender:
             return 0, 0, 0
         store = shown.points
         keys = sorted(set(int(k) for k in keys))
-        size = settings.point_size_units
+        size = self.point_size = shown.point_size_units(settings)
         for k, rows in store.group_rows(keys).items():
             path = f"points/kf{k:06d}"
             if len(rows) == 0 or not settings.in_clip(k):
@@ -201,7 +208,7 @@ class SceneSender:
             self.set_object("track/lines", track_lines_object(xyz, centers))
         else:
             self.delete("track/lines")
-        self.set_object("track/point", track_point_object(xyz, settings.point_size_units * 4))
+        self.set_object("track/point", track_point_object(xyz, shown.point_size_units(settings) * 3))
         self.counts["track"] = int(len(centers))
 
 

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .scene import DISPLAY_EXTENT, hex_to_rgb255
+from .scene import hex_to_rgb255
+
+POINT_FRACTION = 0.015
+"""Default point diameter: 1.5 % of the median distance from a map point to its nearest camera (at that
+distance a point spans about 1 % of a 640-pixel-wide image with a 60-degree field of view; in the
+overview, 3 to 6 pixels)."""
 
 PARTS = ("points", "keyframes", "path", "current", "directions")
 """The parts of the map that can be shown or hidden (a ``show_<part>`` field each)."""
@@ -26,9 +31,11 @@ class ViewSettings:
     show_directions: bool = False
     """A viewing-direction vector (optical axis) from every keyframe."""
     frustum_scale: float = 1.0
-    """Frustum size as a multiple of 1/40 of the map extent."""
+    """Frustum depth as a multiple of 1/40 of the map's extent (the 5-95 % box of points and cameras), in map
+    units: a monocular map's unit is arbitrary (not a metre) until it is aligned to ground truth."""
     point_size: float = 1.0
-    """Point size as a multiple of 1/120 of the map extent (in the viewer: 0.05 of its 6 units)."""
+    """Point diameter as a multiple of :data:`POINT_FRACTION` of the median distance from a map point to its
+    nearest camera, map units (so points look alike on any map, whatever its scale)."""
     track_point: int = -1
     """Draw lines from this 3D point id to every keyframe observing it (-1 = none)."""
     clip: tuple[int, int] | None = None
@@ -54,10 +61,10 @@ class ViewSettings:
         """Depth of the keyframe frustums, map units."""
         return map_extent / 40.0 * self.frustum_scale
 
-    @property
-    def point_size_units(self) -> float:
-        """Size of the map points in viewer units (point sizes ignore the scale of the view's transform)."""
-        return DISPLAY_EXTENT / 120.0 * self.point_size
+    def point_diameter(self, view_depth: float) -> float:
+        """Diameter of the map points, map units, for a median point-to-nearest-camera distance ``view_depth``
+        (map units)."""
+        return POINT_FRACTION * view_depth * self.point_size
 
 
-__all__ = ["ViewSettings", "PARTS"]
+__all__ = ["ViewSettings", "PARTS", "POINT_FRACTION"]

@@ -15,7 +15,9 @@ import numpy as np
 import pycolmap
 
 from .diff import PointStore
-from .scene import Camera, compute_fit, time_fractions, world_from_cam
+from .scene import (DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, Camera, compute_fit, display_from_map,
+                    nearest_camera_distance, time_fractions, view_centering, world_from_cam)
+from .settings import ViewSettings
 
 
 class ShownMap:
@@ -42,6 +44,10 @@ class ShownMap:
         """Keyframe -> the point ids it observed when last read in full (to find deleted points)."""
         self.fit: tuple[np.ndarray, float] | None = None
         """(centre (3,), extent) of the display fit, map units."""
+        self.fit_box: tuple[np.ndarray, float] | None = None
+        """(centre (3,), extent) of the 5-95 % box the fit was made from (before centring the picture)."""
+        self.view_depth = 1.0
+        """Median distance from a map point to its nearest camera, map units (set with the fit)."""
         self.camera: Camera | None = None
 
     @property
@@ -92,6 +98,37 @@ class ShownMap:
         pts = self.points.xyz[self.points.alive()].astype(np.float64)
         return compute_fit(pts, self.kf_centers(), self.path_c)
 
+    def set_fit(self, fit: tuple[np.ndarray, float], aspect: float | None = None) -> None:
+        """Use ``fit`` and measure the depth the points were seen at (for their size) on the same map; with
+        the viewer's ``aspect`` (width / height), move the centre so the home camera's picture is centred."""
+        self.fit = self.fit_box = fit
+        if aspect is not None:
+            points, cameras = self.display_points()
+            offset = view_centering(points, cameras, aspect)
+            R = DISPLAY_FROM_OPENCV * (DISPLAY_EXTENT / fit[1])
+            self.fit = (fit[0] + np.linalg.solve(R, offset), fit[1])
+        pts = self.points.xyz[self.points.alive()]
+        depth = nearest_camera_distance(pts, np.concatenate([self.kf_centers(), self.path_c]))
+        self.view_depth = depth if np.isfinite(depth) and depth > 0 else fit[1] / 3
+
+    @property
+    def display_scale(self) -> float:
+        """Viewer units per map unit."""
+        return DISPLAY_EXTENT / self.map_extent
+
+    def point_size_units(self, settings: ViewSettings) -> float:
+        """The points' diameter in viewer units (point sizes ignore the scale of the view's transform)."""
+        return settings.point_diameter(self.view_depth) * self.display_scale
+
+    def display_points(self, sample: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+        """((M, 3) up to ``sample`` map points, (C, 3) every camera centre) in viewer coordinates (framing)."""
+        pts = self.points.xyz[self.points.alive()].astype(np.float64)
+        if len(pts) > sample:
+            pts = pts[np.random.default_rng(0).choice(len(pts), sample, replace=False)]
+        cams = np.concatenate([self.kf_centers(), self.path_c])
+        T = display_from_map(self.fit)
+        return pts @ T[:3, :3].T + T[:3, 3], cams @ T[:3, :3].T + T[:3, 3]
+
     def refit_needed(self, full: bool) -> bool | tuple[np.ndarray, float]:
         """Whether the display fit no longer frames the map: none yet; or (every point read) the map's
         extent changed by more than -40 % / +25 % or its centre moved by a quarter of it (growth, bundle
@@ -99,7 +136,7 @@ class ShownMap:
         Returns the new fit when it was computed."""
         if self.fit is None:
             return True
-        c, ext = self.fit
+        c, ext = self.fit_box if self.fit_box is not None else self.fit
         if full:
             cand = self.compute_fit()
             if not (0.6 * ext <= cand[1] <= 1.25 * ext) or np.abs(cand[0] - c).max() > 0.25 * ext:

@@ -75,11 +75,25 @@ def state_from_slam(slam: "Slam") -> MapState | None:
     traj = slam.trajectory(segment=seg.id)
     ids = np.array(sorted(m.keyframes), np.int64)
     times = np.array([m.keyframes[int(i)].timestamp for i in ids])
-    current = None
+    return MapState(m.reconstruction, ids, times, traj.timestamps, traj.positions, current_pose(slam, seg.id), key=m)
+
+
+def current_pose(slam: "Slam", segment: int) -> np.ndarray | None:
+    """(4, 4) world_from_cam of the current frame for the map view, or None (not drawn).
+
+    While running: the last step's pose when it is a tracked non-key frame of ``segment``. After
+    ``finish()`` (whose global bundle adjustment moves and may rescale every pose) the last frame's *final*
+    pose (``slam.pose_of``), so the marker sits at the end of the drawn path, keyframe or not."""
     r = slam.last_result
-    if r is not None and r.cam_from_world is not None and not r.is_keyframe and r.segment == seg.id:
-        current = np.linalg.inv(r.cam_from_world)
-    return MapState(m.reconstruction, ids, times, traj.timestamps, traj.positions, current, key=m)
+    if r is None or r.segment != segment:
+        return None
+    if slam.finished:
+        last = len(slam.records) - 1
+        pose = slam.pose_of(last) if last >= 0 else None
+        return None if pose is None else np.linalg.inv(pose)
+    if r.cam_from_world is None or r.is_keyframe:
+        return None
+    return np.linalg.inv(r.cam_from_world)
 
 
 def state_from_run(run_dir: str | os.PathLike) -> MapState:
