@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 OUT    ?= runs/demo
 
-.PHONY: demo test install bench clean
+.PHONY: demo test install bench bench-suite clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,9 @@ test: install
 
 bench: install
 	$(PY) benchmarks/bench_slam.py
+
+bench-suite: install
+	PYTHONPATH=$(CURDIR) nice -n 5 $(PY) benchmarks/bench_suite.py $(SUITE_ARGS)
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

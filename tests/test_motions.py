@@ -8,7 +8,7 @@ import pytest
 
 from slamkit.errors import ConfigError
 from slamkit.sources import motions, open_source, synthetic
-from slamkit.sources.motions import HARD_MOTIONS, MOTIONS, fast_yaw, fast_yaw_angles, handheld, jerk_frames, jerky
+from slamkit.sources.motions import HARD_MOTIONS, MOTIONS, fast_forward, fast_yaw, forward, fast_yaw_angles, handheld, jerk_frames, jerky
 from slamkit.sources.scene import BOXES, ROOM_X, ROOM_Y, ROOM_Z, default_room
 from slamkit.sources.synthetic import DEFAULT_CAMERA
 
@@ -100,6 +100,24 @@ def test_jerky_jumps_are_several_frames_of_motion_in_one(seed):
                                                             - base[at + np.arange(jumps) * (jump - 1) - 1, :3, 3], axis=1))
 
 
+@pytest.mark.parametrize("speed", [0.15, 0.3])
+def test_fast_forward_moves_along_the_optical_axis_at_speed(speed):
+    n = 80
+    poses, straight = fast_forward(n, speed=speed, weave=0.4), forward(n, speed=speed)
+    np.testing.assert_array_equal(poses[:, :3, :3], straight[:, :3, :3])  # the gaze of forward
+    np.testing.assert_array_equal(poses[:, 1:3, 3], straight[:, 1:3, 3])
+    np.testing.assert_allclose(poses[:, 0, 3], 0.2 + 0.4 * np.sin(2 * np.pi * np.arange(n) / (n - 1)), atol=1e-15)
+    dy = np.abs(np.diff(poses[:, 1, 3]))
+    assert dy.mean() == pytest.approx(speed, rel=0.1) and dy.max() <= speed * np.pi / 2 + 1e-12
+    # the motion is mostly along the optical axis: camera z is the main component of every step
+    steps = np.einsum("nji,nj->ni", poses[:-1, :3, :3], np.diff(poses[:, :3, 3], axis=0))
+    moving = np.linalg.norm(steps, axis=1) > speed / 2
+    assert moving.sum() > n / 2
+    assert (np.abs(steps[moving, 2]) > 0.9 * np.linalg.norm(steps[moving], axis=1)).all()
+    # not a line: a Sim(3) alignment is defined
+    assert np.linalg.svd(poses[:, :3, 3] - poses[:, :3, 3].mean(0), compute_uv=False)[1] > 0.1
+
+
 def test_seeds_are_reproducible_and_differ():
     np.testing.assert_array_equal(jerky(80, seed=4), jerky(80, seed=4))
     assert not np.allclose(jerky(80, seed=4), jerky(80, seed=5))
@@ -112,7 +130,7 @@ def test_hard_motions_by_spec():
     src = open_source("synthetic:fast-yaw?frames=30&yaw_rate=6&turn=30&hold=2")
     np.testing.assert_array_equal(src.gt_poses, fast_yaw(30, yaw_rate=6, turn=30, hold=2))
     # fast forward (KITTI at skip 2-3 has a median flow of tens of pixels): 0.25 m per frame in the room
-    fast = open_source("synthetic:forward?frames=12&speed=0.25")
+    fast = open_source("synthetic:fast-forward?frames=12")
     assert 15 < np.median([np.median(fast.flow(i)) for i in range(len(fast) - 1)]) < 60
     turning = open_source("synthetic:fast-yaw?frames=8&hold=0&yaw_rate=8")
     assert np.median(turning.flow(2)) == pytest.approx(500 * math.radians(8), rel=0.15)
@@ -121,7 +139,7 @@ def test_hard_motions_by_spec():
 @pytest.mark.parametrize("spec, what", [
     ("synthetic:fast-yaw?yaw_rate=40", "yaw_rate"), ("synthetic:fast-yaw?hold=1.5", "hold"),
     ("synthetic:jerky?jump=0", "jump"), ("synthetic:jerky?frames=5&jumps=9", "jumps"),
-    ("synthetic:jerky?yaw_rate=3", "yaw_rate")])
+    ("synthetic:jerky?yaw_rate=3", "yaw_rate"), ("synthetic:fast-forward?weave=2", "weave")])
 def test_bad_hard_motion_parameters(spec, what):
     with pytest.raises(ConfigError, match=what):
         open_source(spec)

@@ -197,7 +197,21 @@ def default_motion(n: int = DEFAULT_FRAMES, seed: int = 0) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------------------
-# hard motions (issue 17): fast rotation and sudden jumps; fast forward motion is ``forward`` with a high speed
+# hard motions (issue 17): fast forward motion, fast rotation and sudden jumps
+
+
+def fast_forward(n: int = 80, speed: float = 0.25, weave: float = 0.4) -> np.ndarray:
+    """Fast motion along the optical axis: :func:`forward` (the same y and gaze: towards the front wall from
+    y = -1.7 m, back and forth over 2.4 m with smooth turns at ``speed`` metres per frame) plus a slow
+    sideways drift ``x = 0.2 + weave * sin(2 pi i / (n - 1))`` metres, so that the path is not a line and a
+    Sim(3) alignment to it is defined. 0.25 m per frame is a median image motion of ~25 px, as KITTI at
+    frame skip 2."""
+    n, speed = _check_frames(n), _check_positive("speed", speed)
+    if not (math.isfinite(weave) and 0 < weave <= 0.5):
+        raise ConfigError(f"weave must be in (0, 0.5] metres (got {weave})")
+    poses = forward(n, speed)
+    poses[:, 0, 3] = 0.2 + weave * np.sin(2 * np.pi * np.arange(n) / (n - 1))
+    return poses
 
 
 def fast_yaw(n: int = 120, yaw_rate: float = 8.0, turn: float = 80.0, hold: int = 10,
@@ -207,7 +221,9 @@ def fast_yaw(n: int = 120, yaw_rate: float = 8.0, turn: float = 80.0, hold: int 
     while its heading swings between +``turn``/2 and -``turn``/2 degrees about facing the front wall (+y):
     ``hold`` frames of constant heading, then a turn at exactly ``yaw_rate`` degrees per frame (the last
     step of a turn takes the remainder), and so on (:func:`fast_yaw_angles`). Turns are about the world
-    vertical (z), so the rotation between consecutive frames is exactly the yaw step."""
+    vertical (z), so the rotation between consecutive frames is exactly the yaw step. The walk bends
+    forward by up to 0.25 m in the middle (y = -0.9 + 0.25 sin(pi x'/1.6), x' the distance walked), so the
+    path is not a line."""
     n, speed = _check_frames(n), _check_positive("speed", speed)
     yaw_rate, turn = _check_positive("yaw_rate", yaw_rate), _check_positive("turn", turn)
     if yaw_rate > 30 or turn > 150:
@@ -217,7 +233,7 @@ def fast_yaw(n: int = 120, yaw_rate: float = 8.0, turn: float = 80.0, hold: int 
         raise ConfigError(f"hold must be an integer number of frames >= 0 (got {hold})")
     yaw = fast_yaw_angles(n, yaw_rate, turn, int(hold))
     s = _travel(n, speed, 1.6)
-    centers = np.stack([-0.8 + s, np.full(n, -0.9), np.full(n, 1.45)], axis=1)
+    centers = np.stack([-0.8 + s, -0.9 + 0.25 * np.sin(np.pi * s / 1.6), np.full(n, 1.45)], axis=1)
     pitch = np.radians(-10.0)
     a = np.radians(yaw)
     dirs = np.stack([-np.sin(a) * np.cos(pitch), np.cos(a) * np.cos(pitch), np.full(n, np.sin(pitch))], axis=1)
@@ -281,10 +297,11 @@ MOTIONS: dict[str, Callable[..., np.ndarray]] = {
     "loop": loop,
     "handheld": handheld,
     "default": default_motion,
+    "fast-forward": fast_forward,
     "fast-yaw": fast_yaw,
     "jerky": jerky,
 }
 """Motion name -> function ``(n, ...) -> (N, 4, 4)`` camera-to-world poses in the default room."""
 
-HARD_MOTIONS = ("fast-yaw", "jerky")
+HARD_MOTIONS = ("fast-forward", "fast-yaw", "jerky")
 """The motions that are not smooth hand-held motion by design (fast turns, sudden jumps: issue 17)."""

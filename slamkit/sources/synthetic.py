@@ -12,10 +12,11 @@ explains the renderer). Specs understood by :func:`open_synthetic` (and by ``ope
 Motions (:data:`MOTIONS`, defined in :mod:`slamkit.sources.motions`): ``sideways``, ``forward``, ``orbit``,
 ``rotation`` (pure rotation, zero baseline), ``translate-then-rotate`` (sideways, then pure rotation in place:
 degenerate motion after initialization), ``loop`` (returns exactly to its start), ``handheld`` (smooth
-random motion), ``fast-yaw`` (quick turns at a fixed yaw rate in degrees per frame while walking slowly),
-``jerky`` (hand-held with sudden jumps: several frames of motion in one) and ``default`` (the motion of the
-default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence
-before JPEG compression). Parameters of every motion:
+random motion), the hard motions of issue 17 ``fast-forward`` (``forward`` at 0.25 m per frame, with a
+sideways drift), ``fast-yaw`` (quick turns at a fixed yaw rate in degrees per frame while walking slowly)
+and ``jerky`` (hand-held with sudden jumps: several frames of motion in one), and ``default`` (the motion of
+the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence before JPEG
+compression). Parameters of every motion:
 
     frames=N     number of frames (>= 2; each motion has its own default)
     seed=S       integer seed of random motions and of the image noise (default 0)
@@ -24,9 +25,8 @@ before JPEG compression). Parameters of every motion:
     scale=K      image size factor of the 640x480 camera (default 1; intrinsics scaled accordingly)
 
 plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
-``jitter``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion function). Fast forward
-motion is ``forward`` with a high ``speed``: ``synthetic:forward?speed=0.2`` moves 0.2 m per frame. An
-unknown motion or parameter, or a bad value, raises ConfigError.
+``jitter``, ``weave``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion function in
+:mod:`slamkit.sources.motions`). An unknown motion or parameter, or a bad value, raises ConfigError.
 
 World frame: z up, metres, floor at z = 0; poses are camera-to-world with OpenCV camera axes.
 
