@@ -150,7 +150,7 @@ def run_one(case: Case, seed: int, out_dir: Path | None = None) -> dict:
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
-    from slamkit import Slam, SlamConfig, ate, open_source
+    from slamkit import Slam, SlamConfig, SlamkitError, ate, open_source
 
     row = {"row": "run", "case": case.name, "skip": case.skip, "seed": seed, "error": ""}
     why = _absent(case)
@@ -176,12 +176,18 @@ def run_one(case: Case, seed: int, out_dir: Path | None = None) -> dict:
             if s["not_initialized_reason"]:
                 row["error"] += f" ({s['not_initialized_reason']})"
         else:
-            row["ate_m"] = float(ate(gt, traj, align="sim3").rmse)
-        if out_dir is not None:
-            slam.save(out_dir)
+            try:  # a path ATE cannot align to (all on a line) leaves the other numbers standing
+                row["ate_m"] = float(ate(gt, traj, align="sim3").rmse)
+            except SlamkitError as e:
+                row["error"] = f"ATE undefined: {e}"
     except Exception as e:  # a failing run is a row of the table, never the end of the suite
         traceback.print_exc()
-        row |= {"status": "error", "error": f"{type(e).__name__}: {e}"}
+        return row | {"status": "error", "error": f"{type(e).__name__}: {e}"}
+    if out_dir is not None:
+        try:  # the run's numbers stand even when its output cannot be written
+            slam.save(out_dir)
+        except Exception as e:
+            row["error"] = "; ".join(x for x in (row["error"], f"not saved: {type(e).__name__}: {e}") if x)
     return row
 
 
@@ -282,7 +288,7 @@ def case_rows(cases: list[Case], runs: list[dict]) -> list[dict]:
         for k in MEAN_KEYS:
             vals = [r[k] for r in ok if r.get(k) is not None]
             row[k], row[f"{k}_se"] = mean_se(vals)
-            if k == "ate_m" and ok and len(vals) < len(ok) and any(r["error"] != "no ground truth" for r in ok):
+            if k == "ate_m" and 0 < len(vals) < len(ok):
                 row["error"] = "; ".join(x for x in (row["error"], f"ATE over {len(vals)}/{len(ok)} seeds") if x)
         rows.append(row)
     return rows
