@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 OUT    ?= runs/demo
 
-.PHONY: demo test install bench clean lab
+.PHONY: demo test install bench bench-suite clean lab
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +22,10 @@ test: install
 
 bench: install
 	$(PY) benchmarks/bench_slam.py
+
+# the hard-motion suite (issue 17): SUITE_ARGS="--quick" for the day-to-day subset
+bench-suite: install
+	$(PY) benchmarks/bench_suite.py $(SUITE_ARGS)
 
 # JupyterLab (in the test extra) from the project's venv, on 127.0.0.1 only, opened on the notebooks folder
 lab: install

@@ -9,11 +9,14 @@ explains the renderer). Specs understood by :func:`open_synthetic` (and by ``ope
     synthetic:<motion>               a sequence rendered on the fly, e.g. ``synthetic:sideways``
     synthetic:<motion>?k=v&k=v       with parameters, e.g. ``synthetic:handheld?frames=200&seed=1``
 
-Motions (:data:`MOTIONS`): ``sideways``, ``forward``, ``orbit``, ``rotation`` (pure rotation, zero
-baseline), ``translate-then-rotate`` (sideways, then pure rotation in place: degenerate motion after
-initialization), ``loop`` (returns exactly to its start), ``handheld`` (smooth random motion) and ``default``
-(the motion of the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence
-before JPEG compression). Parameters of every motion:
+Motions (:data:`MOTIONS`, defined in :mod:`slamkit.sources.motions`): ``sideways``, ``forward``, ``orbit``,
+``rotation`` (pure rotation, zero baseline), ``translate-then-rotate`` (sideways, then pure rotation in place:
+degenerate motion after initialization), ``loop`` (returns exactly to its start), ``handheld`` (smooth
+random motion), the hard motions of issue 17 ``fast-forward`` (``forward`` at 0.25 m per frame, with a
+sideways drift), ``fast-yaw`` (quick turns at a fixed yaw rate in degrees per frame while walking slowly)
+and ``jerky`` (hand-held with sudden jumps: several frames of motion in one), and ``default`` (the motion of
+the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence before JPEG
+compression). Parameters of every motion:
 
     frames=N     number of frames (>= 2; each motion has its own default)
     seed=S       integer seed of random motions and of the image noise (default 0)
@@ -22,7 +25,8 @@ before JPEG compression). Parameters of every motion:
     scale=K      image size factor of the 640x480 camera (default 1; intrinsics scaled accordingly)
 
 plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
-``jitter``: see each motion function). An unknown motion or parameter, or a bad value, raises ConfigError.
+``jitter``, ``weave``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion function in
+:mod:`slamkit.sources.motions`). An unknown motion or parameter, or a bad value, raises ConfigError.
 
 World frame: z up, metres, floor at z = 0; poses are camera-to-world with OpenCV camera axes.
 
@@ -43,7 +47,6 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -51,7 +54,9 @@ from ..camera import Intrinsics
 from ..errors import CalibrationError, ConfigError, SourceError
 from ..types import Trajectory
 from .base import FrameSource, ImageListSource, select
-from .scene import ROOM_Y, Rendering, Scene, default_room, look_at
+from .motions import (DEFAULT_FRAMES, MOTIONS, _check_positive, default_motion, forward, handheld,  # noqa: F401
+                      loop, orbit, rotation, sideways, translate_then_rotate)
+from .scene import Rendering, Scene, default_room, project
 
 log = logging.getLogger(__name__)
 
@@ -61,204 +66,11 @@ DEFAULT_CAMERA = Intrinsics(640, 480, 500.0, 500.0, 319.5, 239.5)
 DEFAULT_VERSION = "default-v2"
 """Name of the cache folder of the default sequence; change it whenever the renderer or scene changes."""
 
-DEFAULT_FRAMES = 360
 DEFAULT_FPS = 30.0
 DEFAULT_NOISE = 1.0
 """Image noise (grey levels) of the default sequence."""
 DEFAULT_JPEG_QUALITY = 95
 _NOISE_PAD = 97
-
-
-# ----------------------------------------------------------------------------------------------------------
-# motions: functions returning (N, 4, 4) camera-to-world poses inside the default room
-
-
-def _check_frames(n: int) -> int:
-    if int(n) != n or n < 2:
-        raise ConfigError(f"frames must be an integer >= 2 (got {n})")
-    return int(n)
-
-
-def _check_positive(name: str, value: float) -> float:
-    if not (math.isfinite(value) and value > 0):
-        raise ConfigError(f"{name} must be a positive number (got {value})")
-    return float(value)
-
-
-def _travel(n: int, speed: float, length: float) -> np.ndarray:
-    """(n,) distances along a path of ``length`` metres at ``speed`` metres per frame: straight through when
-    the path is long enough, else back and forth with smooth (cosine) turns."""
-    s = np.arange(n) * speed
-    if s[-1] <= length:
-        return s
-    return 0.5 * length * (1.0 - np.cos(np.pi * s / length))
-
-
-def _poses_looking_at(centers: np.ndarray, targets: np.ndarray, rolls: np.ndarray | None = None) -> np.ndarray:
-    rolls = np.zeros(len(centers)) if rolls is None else rolls
-    return np.stack([look_at(c, t, roll=r) for c, t, r in zip(centers, targets, rolls)])
-
-
-def sideways(n: int = 120, speed: float = 0.015) -> np.ndarray:
-    """Translation along x (parallel to the front wall, 3.2 m away), looking straight at the wall.
-
-    ``speed`` metres per frame; the path is centred on x = 0 and at most 2.6 m long (longer motions go
-    back and forth)."""
-    n, speed = _check_frames(n), _check_positive("speed", speed)
-    length = 2.6
-    s = _travel(n, speed, length)
-    x = s - 0.5 * min(s.max(), length)
-    centers = np.stack([x, np.full(n, -1.0), np.full(n, 1.45)], axis=1)
-    return _poses_looking_at(centers, centers + [0.0, 3.0, -0.15])
-
-
-def forward(n: int = 120, speed: float = 0.015) -> np.ndarray:
-    """Translation along the optical axis towards the front wall, from y = -1.7 m (at most 2.4 m long)."""
-    n, speed = _check_frames(n), _check_positive("speed", speed)
-    s = _travel(n, speed, 2.4)
-    centers = np.stack([np.full(n, 0.2), -1.7 + s, np.full(n, 1.4)], axis=1)
-    return _poses_looking_at(centers, centers + [0.0, 3.0, -0.35])
-
-
-def orbit(n: int = 240, speed: float = 0.015, radius: float = 1.0) -> np.ndarray:
-    """Circle of ``radius`` metres (1.45 m high) around the cube in the middle of the room, looking at the
-    cube; starts south of it and turns counter-clockwise at ``speed`` metres per frame."""
-    n, speed = _check_frames(n), _check_positive("speed", speed)
-    radius = _check_positive("radius", radius)
-    if radius > 1.1:
-        raise ConfigError(f"radius must be <= 1.1 m to stay clear of the furniture (got {radius})")
-    centre = np.array([-0.3, 0.2])
-    theta = -np.pi / 2 + np.arange(n) * speed / radius
-    centers = np.stack([centre[0] + radius * np.cos(theta), centre[1] + radius * np.sin(theta),
-                        np.full(n, 1.45)], axis=1)
-    targets = np.tile([centre[0], centre[1], 0.8], (n, 1))
-    return _poses_looking_at(centers, targets)
-
-
-def rotation(n: int = 150, amplitude: float = 40.0) -> np.ndarray:
-    """Pure rotation in place (zero baseline): the camera pans +-``amplitude`` degrees (one sine period)
-    and tilts a little, standing at (0, -1, 1.45)."""
-    n = _check_frames(n)
-    amplitude = _check_positive("amplitude", amplitude)
-    if amplitude > 80:
-        raise ConfigError(f"amplitude must be <= 80 degrees (got {amplitude})")
-    phase = 2 * np.pi * np.arange(n) / (n - 1)
-    yaw = np.radians(amplitude) * np.sin(phase)
-    pitch = np.radians(-4.0 + 6.0 * np.sin(2 * phase))
-    c = np.array([0.0, -1.0, 1.45])
-    dirs = np.stack([np.sin(yaw) * np.cos(pitch), np.cos(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
-    return _poses_looking_at(np.tile(c, (n, 1)), c + dirs)
-
-
-def translate_then_rotate(n: int = 150, translation: int = 40, speed: float = 0.015,
-                          amplitude: float = 25.0) -> np.ndarray:
-    """Degenerate motion after a good start: the first ``translation`` frames move sideways (as
-    :func:`sideways`, ``speed`` metres per frame, from x = -0.3 m) looking at the front wall, then the camera
-    stops and rotates in place (zero baseline): it pans +-``amplitude`` degrees (one sine period) and tilts
-    a little. Frames ``translation - 1`` to ``n - 1`` share one camera centre."""
-    n, speed = _check_frames(n), _check_positive("speed", speed)
-    amplitude = _check_positive("amplitude", amplitude)
-    if int(translation) != translation or not 2 <= translation < n:
-        raise ConfigError(f"translation must be an integer number of frames in [2, frames) (got {translation})")
-    if amplitude > 60:
-        raise ConfigError(f"amplitude must be <= 60 degrees (got {amplitude})")
-    if (translation - 1) * speed > 1.5:
-        raise ConfigError(f"translation x speed must be <= 1.5 m to stay in the room (got "
-                          f"{(translation - 1) * speed:g} m)")
-    t = int(translation)
-    gaze = np.array([0.0, 3.0, -0.15])
-    centers = np.stack([-0.3 + np.arange(t) * speed, np.full(t, -1.0), np.full(t, 1.45)], axis=1)
-    moving = _poses_looking_at(centers, centers + gaze)
-    m = n - t + 1  # rotation frames, the first of which is the last translation frame
-    phase = 2 * np.pi * np.arange(m) / (m - 1)
-    yaw = np.radians(amplitude) * np.sin(phase)
-    pitch = math.atan2(gaze[2], gaze[1]) + np.radians(3.0) * np.sin(2 * phase)
-    dirs = np.stack([np.sin(yaw) * np.cos(pitch), np.cos(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
-    c = centers[-1]
-    turning = _poses_looking_at(np.tile(c, (m, 1)), c + dirs)
-    return np.concatenate([moving, turning[1:]])
-
-
-def _periodic_noise(n: int, rng: np.random.Generator, amplitude: float, cycles: tuple[int, int],
-                    terms: int = 4) -> np.ndarray:
-    """(n,) smooth random signal, a sum of ``terms`` sinusoids with whole numbers of periods over the n
-    frames (so it returns to its first value on the last frame), peak at most ``amplitude``."""
-    i = np.arange(n) / (n - 1)
-    k = rng.integers(cycles[0], cycles[1] + 1, terms)
-    ph = rng.uniform(0, 2 * np.pi, terms)
-    w = rng.uniform(0.5, 1.0, terms)
-    w *= amplitude / w.sum()
-    return (w[:, None] * (np.sin(2 * np.pi * k[:, None] * i + ph[:, None]) - np.sin(ph[:, None]))).sum(0) / 2
-
-
-def loop(n: int = 240, jitter: float = 0.0, seed: int = 0) -> np.ndarray:
-    """A closed loop: an ellipse (2.4 m x 1 m, 1.45 m high) in the back half of the room, starting with a
-    sideways move, looking at the front half while the gaze sweeps left and right. The last pose equals the
-    first. ``jitter`` (0..2) adds periodic hand-held shake: about 3 cm, 0.1 m of gaze and 1.5 degrees of roll
-    per unit, drawn from ``seed``."""
-    n = _check_frames(n)
-    if not (math.isfinite(jitter) and 0 <= jitter <= 2):
-        raise ConfigError(f"jitter must be in [0, 2] (got {jitter})")
-    phi = 2 * np.pi * np.arange(n) / (n - 1)
-    centers = np.stack([1.2 * np.sin(phi), -0.6 - 0.5 * (1 - np.cos(phi)), 1.45 + 0.08 * np.sin(2 * phi)], axis=1)
-    targets = np.stack([2.6 * np.sin(phi) + 0.5 * np.sin(2 * phi), np.full(n, ROOM_Y),
-                        1.15 + 0.2 * np.sin(3 * phi)], axis=1)
-    rolls = np.zeros(n)
-    if jitter > 0:
-        rng = np.random.default_rng(int(seed))
-        for k in range(3):
-            centers[:, k] += _periodic_noise(n, rng, 0.03 * jitter, (5, 14))
-            targets[:, k] += _periodic_noise(n, rng, 0.10 * jitter, (3, 10))
-        rolls += np.radians(_periodic_noise(n, rng, 1.5 * jitter, (2, 8)))
-    return _poses_looking_at(centers, targets, rolls)
-
-
-def _random_signal(rng: np.random.Generator, amplitude: float, terms: int = 4) -> Callable[[np.ndarray], np.ndarray]:
-    """A smooth random signal ``t -> (len(t),)``: ``terms`` sinusoids of 0.3..1 cycles per unit time with
-    random phases, amplitudes summing to ``amplitude``."""
-    f = rng.uniform(0.3, 1.0, terms)
-    ph = rng.uniform(0, 2 * np.pi, terms)
-    w = rng.uniform(0.3, 1.0, terms)
-    w *= amplitude / w.sum()
-    return lambda t: (w[:, None] * np.sin(2 * np.pi * f[:, None] * np.asarray(t)[None, :] + ph[:, None])).sum(0)
-
-
-def handheld(n: int = 300, speed: float = 0.015, seed: int = 0) -> np.ndarray:
-    """Smooth random hand-held motion: position (within x +-1.2 m, y -1.6..-0.4 m, z 1.3..1.6 m) and gaze
-    point (on the front half of the room) are sums of random low-frequency sinusoids, plus up to 2 degrees
-    of roll. Time is scaled so that the mean speed is ``speed`` metres per frame."""
-    n, speed = _check_frames(n), _check_positive("speed", speed)
-    rng = np.random.default_rng(int(seed))
-    cx, cy, cz = _random_signal(rng, 1.2), _random_signal(rng, 0.6), _random_signal(rng, 0.15)
-    gx, gz, roll = _random_signal(rng, 2.0), _random_signal(rng, 0.4), _random_signal(rng, 2.0)
-
-    def centers(t: np.ndarray) -> np.ndarray:
-        return np.stack([cx(t), -1.0 + cy(t), 1.45 + cz(t)], axis=1)
-
-    t = np.linspace(0.0, 1.0, n)
-    for _ in range(6):  # fixed point: the mean speed is nearly proportional to the time scale
-        mean_speed = np.linalg.norm(np.diff(centers(t), axis=0), axis=1).mean()
-        t *= speed / max(mean_speed, 1e-12)
-    targets = np.stack([gx(t), np.full(n, ROOM_Y), 1.2 + gz(t)], axis=1)
-    return _poses_looking_at(centers(t), targets, np.radians(roll(t)))
-
-
-def default_motion(n: int = DEFAULT_FRAMES, seed: int = 0) -> np.ndarray:
-    """The motion of the default sequence: :func:`loop` with hand-held jitter (1.0)."""
-    return loop(n, jitter=1.0, seed=seed)
-
-
-MOTIONS: dict[str, Callable[..., np.ndarray]] = {
-    "sideways": sideways,
-    "forward": forward,
-    "orbit": orbit,
-    "rotation": rotation,
-    "translate-then-rotate": translate_then_rotate,
-    "loop": loop,
-    "handheld": handheld,
-    "default": default_motion,
-}
-"""Motion name -> function ``(n, ...) -> (N, 4, 4)`` camera-to-world poses in the default room."""
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -309,6 +121,20 @@ class SyntheticSource(FrameSource):
     def points(self, i: int, pixels: np.ndarray) -> np.ndarray:
         """(N, 3) exact world points seen at (N, 2) pixel coordinates of delivered frame ``i``."""
         return self.scene.points(self.gt_poses[i], self.camera, pixels)
+
+    def flow(self, i: int, j: int | None = None, step: int = 20) -> np.ndarray:
+        """(M,) exact image motion in pixels from delivered frame ``i`` to ``j`` (default ``i + 1``): the
+        distance between a grid of pixels (every ``step`` px) of frame ``i`` and the projections in frame
+        ``j`` of the scene points they see (points behind camera ``j`` left out; occlusion ignored). Its
+        median says how fast a sequence is in the units that matter to tracking."""
+        j = i + 1 if j is None else j
+        w, h = self.camera.width, self.camera.height
+        u, v = np.meshgrid(np.arange(step / 2, w, step), np.arange(step / 2, h, step))
+        pixels = np.stack([u.ravel(), v.ravel()], axis=1)
+        pts = self.points(i, pixels)
+        ok = np.isfinite(pts).all(axis=1)
+        uv, z = project(self.gt_poses[j], self.camera, pts[ok])
+        return np.linalg.norm(uv[z > 0] - pixels[ok][z > 0], axis=1)
 
     def image(self, i: int) -> np.ndarray:
         """(H, W, 3) uint8 BGR image of delivered frame ``i`` (with the source's noise)."""
