@@ -29,7 +29,7 @@ bench-suite: install
 
 # JupyterLab (in the test extra) from the project's venv, on 127.0.0.1 only, opened on the notebooks folder
 lab: install
-	$(PY) -m jupyter lab --ip=127.0.0.1 --notebook-dir=notebooks
+	$(PY) -m jupyter lab --ip=127.0.0.1 --notebook-dir=notebooks $(if $(filter 0,$(shell id -u)),--allow-root)
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
