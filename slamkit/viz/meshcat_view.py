@@ -150,6 +150,10 @@ def state_from_run(run_dir: str | os.PathLike) -> MapState:
     sparse = run_dir / "sparse"
     if not (sparse / "images.bin").is_file() and not (sparse / "images.txt").is_file():
         raise SourceError(f"{sparse}: no COLMAP model (images.bin) — is {run_dir} a folder written by slam.save?")
+    if (sparse / "images.bin").is_file():
+        from ..io.saved import check_colmap_model
+
+        check_colmap_model(sparse)  # a damaged model would hang or abort pycolmap's reader
     rec = pycolmap.Reconstruction(str(sparse))
     ids = np.array(sorted(rec.reg_image_ids()), np.int64)
     times = None
