@@ -130,7 +130,9 @@ def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
         print(f"evaluation skipped: {outcome.evaluation_error}", file=sys.stderr)
     print(f"outputs in {out}/ (trajectory_tum.txt, keyframes_tum.txt, trajectory_kitti.txt, sparse/, points.ply, "
           f"summary.json, session/)")
-    if outcome.message:
+    if outcome.message and outcome.complete:
+        print(f"slamkit: {outcome.message}; saved in {out}", file=sys.stderr)
+    elif outcome.message:
         again = f"slamkit run {shlex.quote(args.source)} --out {shlex.quote(str(out))} --resume"
         print(f"slamkit: {outcome.message}; the map, trajectory and session so far are saved in {out} "
               f"(continue with: {again})", file=sys.stderr)

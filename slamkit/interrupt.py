@@ -62,7 +62,7 @@ class StopRequest:
 
     The first signal asks to stop after the current frame (and the save); the second only says that the run
     is already stopping; the ``abort_after``-th raises :class:`Interrupted` wherever the program is (the work
-    of this run is then not saved; see :func:`slamkit.runner.run_to_folder`). Use as a context manager to
+    of this run is then not saved; see :func:`slamkit.runner.run_to_folder`), later ones are only recorded. Use as a context manager to
     install it for SIGINT, SIGTERM and SIGHUP (main thread only; elsewhere it is inert).
     """
 
@@ -83,7 +83,7 @@ class StopRequest:
         self.signals.append(int(signum))
         if self.on_signal is not None:
             self.on_signal(int(signum), len(self.signals))
-        if len(self.signals) >= self.abort_after:
+        if len(self.signals) == self.abort_after:  # once: later signals do not cut the clean-up short
             raise Interrupted(signum)
 
     def __enter__(self) -> "StopRequest":

@@ -56,6 +56,8 @@ class RunOutcome:
     ate: dict | None = None
     """``slamkit.eval.evaluate`` of the saved trajectory against the saved ground truth, when there is one."""
     evaluation_error: str = ""
+    complete: bool = False
+    """Every frame processed and the run finished (final bundle adjustment): nothing left to resume."""
     resumed_after: int | None = None
     """With ``resume``: the number of frames the resumed session had processed."""
 
@@ -92,8 +94,8 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
 
     def on_signal(signum: int, count: int) -> None:
         slam = state.get("slam")
-        what = ("preparing" if slam is None else "finishing the final bundle adjustment" if slam.done
-                else f"finishing frame {len(slam.records)}")
+        what = ("stopping before the first frame" if slam is None or not slam.records
+                else "finishing the final bundle adjustment" if slam.done else "finishing the frame in progress")
         if count == 1:
             notify(f"{signal_name(signum)} received: {what}, then saving to {out} "
                    f"(send it {StopRequest.abort_after - 1} more times to stop at once without saving)")
@@ -138,17 +140,19 @@ def _loop_and_save(slam: Slam, out: Path, overwrite: bool, stop: StopRequest,
         where = (f"frame {last.index} (frame id {last.frame_id}) failed" if failed
                  else "finishing the run failed" if slam.done else f"failed after frame {len(slam.records) - 1}")
         status, code, message, error = FAILED, 1, f"{where}: {type(e).__name__}: {e}", e
-    if stop.signum is not None:
+    if stop.signum is not None and status == FINISHED:
         status, code = INTERRUPTED, exit_code(stop.signum)
         message = (f"{signal_name(stop.signum)}: interrupted after frame {len(slam.records) - 1} "
-                   f"({len(slam.records)}/{len(slam)} frames)")
+                   f"({len(slam.records)}/{len(slam)} frames)" if not (slam.done and slam.finished) else
+                   f"{signal_name(stop.signum)} received while finishing; the run is complete")
     try:
         save_run(slam, out, overwrite=overwrite, lock=False)
     except Interrupted as e:
         return _aborted(slam, out, before, e.signum, "saving")
-    if stop.signum is not None and status == FINISHED:  # pragma: no cover - a signal during the last save
+    if stop.signum is not None and status == FINISHED:  # a signal during the save: the save completed
         status, code = INTERRUPTED, exit_code(stop.signum)
-    return RunOutcome(out, status, code, message, True, slam.summary(), error)
+        message = f"{signal_name(stop.signum)} received while saving; the save completed"
+    return RunOutcome(out, status, code, message, True, slam.summary(), error, complete=slam.done and slam.finished)
 
 
 def _aborted(slam: Slam, out: Path, before: str | None, signum: int, during: str) -> RunOutcome:
@@ -157,7 +161,7 @@ def _aborted(slam: Slam, out: Path, before: str | None, signum: int, during: str
     if saved:
         held = f"{out} holds this run, saved just before"
     elif before is not None:
-        held = f"{out} still holds the previous run, unchanged; this run's frames are lost"
+        held = f"{out} still holds the previous run, unchanged (this run's new frames are not saved)"
     else:
         held = f"nothing was saved to {out}"
     message = f"{signal_name(signum)} again: stopped at once while {during}, without saving; {held}"

@@ -143,11 +143,25 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         os.chmod(tmp, 0o777 & ~mask)
         backup = _commit(tmp, path, parent)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_tree(tmp)
         raise
     if backup is not None:
-        shutil.rmtree(backup, ignore_errors=True)
+        _remove_tree(backup)
     _fsync_dir(parent)
+
+
+def _remove_tree(folder: Path) -> None:
+    """``rmtree`` that completes even when an interrupt arrives meanwhile (it is raised again afterwards), so
+    no temporary folder survives Ctrl-C or SIGTERM."""
+    pending: BaseException | None = None
+    for _ in range(5):
+        try:
+            shutil.rmtree(folder, ignore_errors=True)
+            break
+        except KeyboardInterrupt as e:
+            pending = e
+    if pending is not None:
+        raise pending
 
 
 def _commit(tmp: Path, path: Path, parent: Path) -> Path | None:
@@ -169,7 +183,7 @@ def _commit(tmp: Path, path: Path, parent: Path) -> Path | None:
                 except OSError:
                     note = f"; the old folder is kept at {moved}"
             if not note:
-                shutil.rmtree(backup, ignore_errors=True)
+                _remove_tree(backup)
         if isinstance(e, OSError):
             raise OutputError(f"{path}: folder cannot be replaced ({e.strerror or e}){note}") from e
         raise
