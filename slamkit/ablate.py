@@ -268,8 +268,8 @@ def _is_dask_client(executor) -> bool:
 
 def check_sweep_args(out_dir: str | os.PathLike, workers: int | None, *, flag_out: str = "out_dir",
                      flag_workers: str = "workers") -> Path:
-    """Refuse a negative worker count and a sweep folder that is a file or cannot be created, before any run
-    (ConfigError / OutputError naming the option); returns the folder, created."""
+    """Refuse a negative worker count and a sweep folder that is a file or lies under one, before any run
+    (ConfigError / OutputError naming the option); creates nothing."""
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
         raise ConfigError(f"{flag_workers} {workers}: must be 0 (runs in this process) or a number of local "
                           "processes >= 1 (default: all cores)")
@@ -278,10 +278,9 @@ def check_sweep_args(out_dir: str | os.PathLike, workers: int | None, *, flag_ou
         raise OutputError(f"{flag_out} '': an empty path; give the sweep folder")
     if out.exists() and not out.is_dir():
         raise OutputError(f"{flag_out} {out}: exists and is not a folder; give a folder for the sweep")
-    try:
-        (out / "runs").mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise OutputError(f"{flag_out} {out}: cannot be created ({e.strerror or e})") from e
+    above = next((p for p in out.parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise OutputError(f"{flag_out} {out}: cannot be created, {above} is a file")
     return out
 
 
@@ -307,6 +306,10 @@ def sweep(sources: Iterable[str] | str, grid: Grid | Sequence[str] | Mapping[str
         grid = parse_grid(grid)
     out_dir = check_sweep_args(out_dir, workers)
     tasks = plan(sources, grid, repeats)
+    try:
+        (out_dir / "runs").mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{out_dir}: sweep folder cannot be created ({e.strerror or e})") from e
     atomic_write_text(out_dir / "sweep.json", json.dumps(
         {"sources": list(dict.fromkeys(t.source for t in tasks)), "grid": _jsonable(grid.to_dict()),
          "repeats": repeats}, indent=2))

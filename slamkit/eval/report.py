@@ -52,7 +52,8 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     the ground truth is missing or too short to align."""
     run = Path(run_dir)
     if not run.exists():
-        raise SlamkitError(f"{run}: does not exist (expected the output folder of `slamkit run`)")
+        raise SlamkitError(f"{run}: does not exist, so it is not a run folder (expected the output folder of "
+                           "`slamkit run`)")
     if not run.is_dir():
         raise SlamkitError(f"{run}: not a run folder (expected the output folder of `slamkit run`)")
     traj_path = run / "trajectory_tum.txt"
