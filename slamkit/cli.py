@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import json
 import shlex
+import signal
 import sys
+import threading
 import traceback
 from pathlib import Path
 
@@ -18,7 +20,7 @@ from .errors import SlamkitError
 from .eval import evaluate
 from .eval.report import evaluate_run
 from .io.saved import check_run
-from .interrupt import Interrupted, notify
+from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, notify, raise_interrupted
 from .io import write_tum
 from .pipeline import Slam
 from .runner import RunOutcome, run_to_folder, summary_line
@@ -102,17 +104,24 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.verbose:
             tqdm.write(str(r))
 
-    try:
-        outcome = run_to_folder(args.source, args.out, config_from_args(args),
-                                resume=args.resume, resume_overrides=_resume_overrides(args) if args.resume else None,
-                                overwrite=args.overwrite, on_start=on_start, on_result=on_result, notify=note)
-    except Interrupted as e:  # stopped at once while preparing (before the first frame)
-        print(f"slamkit: {e}: stopped before the first frame; {out} was left as it was", file=sys.stderr)
-        return e.exit_code
-    finally:
-        if bar is not None:
-            bar.close()
-    return _report_run(args, outcome)
+    outcome = None
+    with StopRequest() as stop:  # signals are handled until the last line is printed
+        try:
+            outcome = run_to_folder(args.source, args.out, config_from_args(args), resume=args.resume,
+                                    resume_overrides=_resume_overrides(args) if args.resume else None,
+                                    overwrite=args.overwrite, on_start=on_start, on_result=on_result, notify=note,
+                                    stop=stop)
+            if bar is not None:
+                bar.close()
+            return _report_run(args, outcome)
+        except Interrupted as e:  # the last signal arrived before the first frame, or after the save
+            held = (f"{out} was left as it was" if outcome is None or not outcome.saved else
+                    f"{out} holds this run, saved")
+            print(f"slamkit: {e}: stopped at once; {held}", file=sys.stderr)
+            return e.exit_code
+        finally:
+            if bar is not None:
+                bar.close()
 
 
 def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
@@ -262,11 +271,29 @@ def main(argv: list[str] | None = None) -> int:
     pr = sub.add_parser("presets", help="list configuration presets")
     pr.set_defaults(func=cmd_presets)
     args = p.parse_args(argv)
+    previous = _signals_interrupt()
     try:
         return args.func(args)
     except SlamkitError as e:
         print(f"slamkit: error: {e}", file=sys.stderr)
         return 2
+    except Interrupted as e:  # SIGTERM / SIGHUP outside a run: a one-line exit, not a native stack dump
+        print(f"slamkit: {e}: stopped", file=sys.stderr)
+        return e.exit_code
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h if h is not None else signal.SIG_DFL)
+
+
+def _signals_interrupt() -> dict:
+    """SIGTERM and SIGHUP raise :class:`Interrupted` like Ctrl-C does (unless ignored, as under nohup); in the
+    main thread only. Returns the previous handlers."""
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+        for s in HELD_SIGNALS:
+            if s != signal.SIGINT and signal.getsignal(s) is not signal.SIG_IGN:
+                previous[s] = signal.signal(s, raise_interrupted)
+    return previous
 
 
 if __name__ == "__main__":  # pragma: no cover

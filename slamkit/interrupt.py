@@ -89,7 +89,8 @@ class StopRequest:
     def __enter__(self) -> "StopRequest":
         if threading.current_thread() is threading.main_thread():
             for s in HELD_SIGNALS:
-                self._previous[s] = signal.signal(s, self)
+                if signal.getsignal(s) is not signal.SIG_IGN:  # nohup's SIGHUP, a background job's SIGINT
+                    self._previous[s] = signal.signal(s, self)
         return self
 
     def __exit__(self, *exc) -> None:

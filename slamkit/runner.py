@@ -19,6 +19,7 @@ What :func:`run_to_folder` guarantees, in order:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import signal
 from collections.abc import Callable
@@ -78,13 +79,16 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
                   resume_overrides: dict | None = None, overwrite: bool = False,
                   on_start: Callable[[Slam, int | None], None] | None = None,
                   on_result: Callable[[Slam, StepResult], None] | None = None,
-                  notify: Callable[[str], None] | None = None, evaluate_ate: bool = True) -> RunOutcome:
+                  notify: Callable[[str], None] | None = None, evaluate_ate: bool = True,
+                  stop: StopRequest | None = None) -> RunOutcome:
     """Run (or with ``resume`` continue) SLAM on ``source`` and save it to ``out``; see the module docstring.
 
     source: a spec, path or FrameSource. config: the configuration of a new run. resume: continue the session
         saved in ``out`` when there is one (``resume_overrides``: the config values to change), else start anew.
     on_start(slam, resumed_after): before the first frame; on_result(slam, result): after every frame.
     notify(line): one-line notes (signals received, no session to resume); default: none.
+    stop: a :class:`StopRequest` the caller has installed already (to keep handling signals after this returns,
+        as the CLI does while it prints); None installs one for the duration of the call.
     Raises SlamkitError before any work for a bad ``out``, source or config (nothing is written then).
     """
     check_out_dir(out, [source], overwrite)  # the raw value: "" is refused, not taken for "."
@@ -102,7 +106,10 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
         elif count < StopRequest.abort_after:
             notify(f"{signal_name(signum)} again: still stopping; once more stops at once without saving")
 
-    with out_dir_lock(out), StopRequest(on_signal) as stop:
+    own = stop is None
+    stop = stop if stop is not None else StopRequest()
+    stop.on_signal = on_signal
+    with out_dir_lock(out), stop if own else contextlib.nullcontext():
         remove_stale_temporaries(out)
         slam, resumed_after = _open(source, out, config, resume, resume_overrides, notify)
         state["slam"] = slam
@@ -114,8 +121,8 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
                               f"first frame; {out} was left as it was", False, slam.summary(),
                               resumed_after=resumed_after)
         outcome = _loop_and_save(slam, out, overwrite, stop, on_result)
-    if outcome.saved and evaluate_ate:
-        outcome = _evaluate(outcome)
+        if outcome.saved and evaluate_ate:
+            outcome = _evaluate(outcome)
     return dataclasses.replace(outcome, resumed_after=resumed_after)
 
 

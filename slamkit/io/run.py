@@ -10,7 +10,7 @@ several):
 - ``groundtruth_tum.txt`` the source's ground truth of the used frames, when it has one
 - ``session/`` everything ``Slam.resume(DIR)`` needs to continue the run (:mod:`slamkit.session`: COLMAP
   models of every segment, JSON state and ``.npz`` arrays, no pickle)
-- ``.slamkit-run`` the marker: size and SHA-256 of every file above (``session/.slamkit-session`` likewise),
+- ``.slamkit-run`` the marker: size and SHA-256 of every file above (``session/.slamkit-session.json`` likewise),
   checked before a run is read again (:mod:`slamkit.io.saved`)
 
 Frames a stage failed on have status ``error`` in ``frames.csv`` (message in its ``error`` column and in

@@ -2,7 +2,7 @@
 keeps two processes from writing one folder at once.
 
 - **Marker and manifest.** Every saved run holds ``.slamkit-run`` (JSON: format, version, a save id, and the
-  size and SHA-256 of every file the save wrote); a session folder holds ``.slamkit-session`` alike. The
+  size and SHA-256 of every file the save wrote); a session folder holds ``.slamkit-session.json`` alike. The
   manifest lets readers check a saved run before reading it (:mod:`slamkit.io.saved`), and the marker says
   "slamkit wrote this folder": only such a folder is ever replaced without ``overwrite=True``.
 - **``check_out_dir``** runs before any frame is processed: a missing or empty folder, or a slamkit run
@@ -35,7 +35,7 @@ __all__ = ["RUN_MARKER", "SESSION_MARKER", "check_out_dir", "is_replaceable", "o
            "remove_stale_temporaries", "source_paths", "write_manifest"]
 
 RUN_MARKER = ".slamkit-run"
-SESSION_MARKER = ".slamkit-session"
+SESSION_MARKER = ".slamkit-session.json"
 MANIFEST_FORMATS = {RUN_MARKER: "slamkit-run", SESSION_MARKER: "slamkit-session-files"}
 MANIFEST_VERSION = 1
 
@@ -46,7 +46,7 @@ RUN_ENTRIES = frozenset({
     "report.md", "report.html", "evaluation.json", "plots", "map.html"})
 """Top-level names a slamkit run folder may hold: anything else is the user's, and the folder is not replaced."""
 
-SESSION_ENTRY = re.compile(r"^(\.slamkit-session|session\.json|state\.npz|segment_\d+)$")
+SESSION_ENTRY = re.compile(r"^(\.slamkit-session\.json|session\.json|state\.npz|segment_\d+)$")
 
 _PREFIX = re.compile(r"^(tum|kitti|7scenes|sevenscenes|euroc|video|folder):(.*)$", re.S)
 

@@ -3,7 +3,7 @@
 pycolmap's model reader trusts its input: an empty ``points3D.bin`` makes it loop forever, a truncated one
 can make it abort the process. So before a run is evaluated or resumed:
 
-1. every file the save recorded in its manifest (``.slamkit-run``, ``session/.slamkit-session``; see
+1. every file the save recorded in its manifest (``.slamkit-run``, ``session/.slamkit-session.json``; see
    :mod:`slamkit.io.run_dir`) must exist with the recorded size and SHA-256;
 2. whatever the manifest says (folders saved before manifests existed have none), the COLMAP binaries are
    walked record by record — counts consistent with the file size, camera models known, every reference
