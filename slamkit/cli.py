@@ -23,7 +23,7 @@ from .io.saved import check_run
 from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, notify, raise_interrupted
 from .io import write_tum
 from .pipeline import Slam
-from .runner import RunOutcome, run_to_folder, summary_line
+from .runner import ABORTED, RunOutcome, run_to_folder, summary_line
 from .sources import open_source
 
 
@@ -128,7 +128,7 @@ def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
     out = outcome.out
     if outcome.error is not None and not isinstance(outcome.error, SlamkitError):
         traceback.print_exception(outcome.error)
-    if not outcome.saved:
+    if not outcome.saved or outcome.status == ABORTED:
         print(f"slamkit: {outcome.message}", file=sys.stderr)
         return outcome.exit_code
     print(summary_line(outcome.summary), file=sys.stderr)
@@ -271,29 +271,46 @@ def main(argv: list[str] | None = None) -> int:
     pr = sub.add_parser("presets", help="list configuration presets")
     pr.set_defaults(func=cmd_presets)
     args = p.parse_args(argv)
-    previous = _signals_interrupt()
+    handler = _SignalsInterrupt()
+    previous = handler.install()
     try:
         return args.func(args)
     except SlamkitError as e:
+        handler.active = False
         print(f"slamkit: error: {e}", file=sys.stderr)
         return 2
     except Interrupted as e:  # SIGTERM / SIGHUP outside a run: a one-line exit, not a native stack dump
+        handler.active = False
         print(f"slamkit: {e}: stopped", file=sys.stderr)
         return e.exit_code
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h if h is not None else signal.SIG_DFL)
+        handler.active = False
+        if argv is not None:  # called from Python: give the handlers back
+            for s, h in previous.items():
+                signal.signal(s, h if h is not None else signal.SIG_DFL)
+        else:  # as a program: the outcome is decided; a late signal must not kill the exiting process
+            for s in previous:
+                signal.signal(s, signal.SIG_IGN)
 
 
-def _signals_interrupt() -> dict:
-    """SIGTERM and SIGHUP raise :class:`Interrupted` like Ctrl-C does (unless ignored, as under nohup); in the
-    main thread only. Returns the previous handlers."""
-    previous = {}
-    if threading.current_thread() is threading.main_thread():
-        for s in HELD_SIGNALS:
-            if s != signal.SIGINT and signal.getsignal(s) is not signal.SIG_IGN:
-                previous[s] = signal.signal(s, raise_interrupted)
-    return previous
+class _SignalsInterrupt:
+    """SIGTERM and SIGHUP raise :class:`Interrupted` like Ctrl-C does while a command runs (not when ignored,
+    as under nohup); inert once ``active`` is False. ``slamkit run`` replaces it by its StopRequest."""
+
+    def __init__(self):
+        self.active = True
+
+    def __call__(self, signum: int, frame) -> None:
+        if self.active:
+            raise_interrupted(signum, frame)
+
+    def install(self) -> dict:
+        previous = {}
+        if threading.current_thread() is threading.main_thread():
+            for s in HELD_SIGNALS:
+                if s != signal.SIGINT and signal.getsignal(s) is not signal.SIG_IGN:
+                    previous[s] = signal.signal(s, self)
+        return previous
 
 
 if __name__ == "__main__":  # pragma: no cover

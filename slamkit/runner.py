@@ -138,9 +138,9 @@ def _loop_and_save(slam: Slam, out: Path, overwrite: bool, stop: StopRequest,
         if stop.signum is None:
             slam.finish()
     except Interrupted as e:  # the abort_after-th signal: inside a frame, so this state is not saved
-        return _aborted(slam, out, before, e.signum, "a frame")
+        return _aborted(slam, out, before, e.signum, "processing a frame")
     except KeyboardInterrupt:  # raised by other code than our handler (e.g. a callback)
-        return _aborted(slam, out, before, signal.SIGINT, "a frame")
+        return _aborted(slam, out, before, signal.SIGINT, "processing a frame")
     except Exception as e:  # noqa: BLE001 - a stage failed: keep what was built, then report
         last = slam.records[-1] if slam.records else None
         failed = last is not None and last.index in slam.errors
@@ -166,12 +166,12 @@ def _aborted(slam: Slam, out: Path, before: str | None, signum: int, during: str
     now = save_id(out)
     saved = now is not None and now != before
     if saved:
-        held = f"{out} holds this run, saved just before"
+        held = f"{out} holds this run: its save had completed"
     elif before is not None:
-        held = f"{out} still holds the previous run, unchanged (this run's new frames are not saved)"
+        held = f"{out} still holds the previous run, unchanged (the frames of this run are not saved)"
     else:
         held = f"nothing was saved to {out}"
-    message = f"{signal_name(signum)} again: stopped at once while {during}, without saving; {held}"
+    message = f"{signal_name(signum)} again: stopped at once while {during}; {held}"
     return RunOutcome(out, ABORTED, exit_code(signum), message, saved, slam.summary())
 
 
