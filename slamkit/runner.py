@@ -195,7 +195,7 @@ def summary_line(s: dict) -> str:
     skipped, unreadable = s.get("frames_skipped", 0), s.get("frames_unreadable", 0)
     if skipped or unreadable:
         first = (s.get("unreadable_frames") or [{}])[0]
-        line += f"; {skipped} frames skipped ({unreadable} unreadable"
+        line += f"; {skipped} frame{'s' if skipped != 1 else ''} skipped ({unreadable} unreadable"
         line += f", e.g. frame {first['frame']}: {first['error']})" if first else ")"
     if s.get("not_initialized_reason") and s["frames"]:
         line += f"; no map: {s['not_initialized_reason']}"

@@ -300,3 +300,39 @@ def test_stop_request_keeps_ignored_signals_ignored():
         assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGHUP, previous)
+
+
+class _InterruptedOnce:
+    """The default sequence, but reading frame ``k`` is interrupted once (Ctrl-C arriving twice inside a step:
+    the second one cuts the frame short before it changed any state)."""
+
+    def __init__(self, k: int):
+        self.inner, self.k, self.fired = open_source("default", max_frames=24), k, False
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def __len__(self):
+        return len(self.inner)
+
+    def __getitem__(self, i):
+        if i == self.k and not self.fired:
+            self.fired = True
+            raise KeyboardInterrupt
+        return self.inner[i]
+
+
+def test_an_interrupted_frame_is_not_an_error_and_is_processed_on_resume(tmp_path):
+    src = _InterruptedOnce(15)
+    slam = Slam(src, SlamConfig().with_overrides(init_frames=10, prefetch=False))
+    with pytest.raises(KeyboardInterrupt) as e:
+        slam.run()
+    assert len(slam.records) == 15 and slam._cursor == 15 and not slam.errors  # frame 15 is given back
+    assert "interrupted at frame 15" in " ".join(e.value.__notes__)
+    slam.save(tmp_path / "run")
+    resumed = Slam.resume(tmp_path / "run", source=src.inner)
+    assert resumed.step().frame_index == 15                    # the interrupted frame comes next
+    resumed.run()
+    frames = (tmp_path / "run" / "frames.csv").read_text()
+    assert ",error," not in frames and not resumed.errors
+    assert all(r.status != "error" for r in resumed.records) and len(resumed.records) == 24
