@@ -54,8 +54,8 @@ from .camera import Intrinsics
 from .config import SlamConfig
 from .errors import ConfigError, SessionError, SlamkitError  # noqa: F401 - SessionError lived here
 from .features import Features, FrameFeatures
-from .io.saved import check_session
 from .interrupt import deferred_interrupt  # noqa: F401 - re-exported: it lived here (pipeline imports it from here)
+from .io.saved import check_session
 from .map import CAMERA_ID, Keyframe, SlamMap
 
 if TYPE_CHECKING:  # pragma: no cover
