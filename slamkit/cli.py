@@ -195,10 +195,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     try:
         df = sweep(args.sources, grid, args.out, executor, repeats=args.repeats, workers=args.workers,
                    retry_failed=args.retry_failed, on_result=progress)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP (Interrupted, exit code 143 / 129)
         print(f"slamkit ablate: interrupted; finished runs are kept in {args.out}/runs/ — run the same command "
               "again to finish the sweep", file=sys.stderr)
-        return 130
+        return getattr(e, "exit_code", 130)
     finally:
         bar.close()
         if client is not None:
