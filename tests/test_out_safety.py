@@ -336,3 +336,22 @@ def test_an_interrupted_frame_is_not_an_error_and_is_processed_on_resume(tmp_pat
     frames = (tmp_path / "run" / "frames.csv").read_text()
     assert ",error," not in frames and not resumed.errors
     assert all(r.status != "error" for r in resumed.records) and len(resumed.records) == 24
+
+
+class _FailingSave(Slam):
+    def summary(self) -> dict:  # the save calls it after the model and trajectories are written
+        raise RuntimeError("disk trouble")
+
+
+def test_an_error_during_the_save_leaves_the_old_run_and_no_temporary_folder(tmp_path):
+    cfg = SlamConfig().with_overrides(max_frames=5, init_frames=2)
+    slam = Slam("default", cfg)
+    slam.run()
+    out = tmp_path / "run"
+    slam.save(out)
+    before = _digest(out)
+    failing = _FailingSave("default", cfg)
+    failing.run()
+    with pytest.raises(RuntimeError, match="disk trouble"):
+        save_run(failing, out)
+    assert _digest(out) == before and _leftovers(tmp_path, "run") == []

@@ -87,7 +87,7 @@ def check_json(path: Path) -> object:
         return json.loads(Path(path).read_bytes().decode("utf-8"))
     except FileNotFoundError:
         raise SessionError(f"{path}: missing") from None
-    except (OSError, UnicodeDecodeError, ValueError) as e:
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:
         raise SessionError(f"{path}: not valid JSON ({type(e).__name__}: {e}); the file is damaged") from None
 
 
