@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import zipfile
 from dataclasses import replace
 
 import cv2
@@ -17,20 +18,25 @@ import numpy as np
 import pycolmap
 import pytest
 
+from slamkit.ablate import sweep
 from slamkit.camera import Intrinsics
+from slamkit.cli import main
 from slamkit.config import SlamConfig
-from slamkit.errors import CalibrationError, ConfigError, OutputError, SlamkitError
+from slamkit.errors import CalibrationError, ConfigError, OutputError, SlamkitError, SourceError
 from slamkit.eval import ate
+from slamkit.features.learned.weights import check_weight_file, load_error_reason
 from slamkit.pipeline import Slam
 from slamkit.sources import open_euroc, open_kitti, open_sevenscenes, open_source, open_video
+from slamkit.sources.base import ImageListSource, read_image
 from slamkit.sources.scene import default_room
 from slamkit.sources.synthetic import SyntheticSource, open_tum_sequence, synthetic_source, write_tum_sequence
 
-from test_sources import make_7scenes, make_euroc, make_kitti, make_video
+from test_sources import make_7scenes, make_euroc, make_kitti, make_tum, make_video
 
 pycolmap.logging.minloglevel = 2
 
 INIT = {"init_frames": 10}
+RUN_MARKER_NAME = ".slamkit-run"
 
 
 @pytest.fixture(scope="module")
@@ -306,10 +312,6 @@ def _one_line(err: str) -> str:
 
 
 def test_tiny_frames_name_the_file_and_the_minimum_size(tmp_path, capsys):
-    from slamkit.cli import main
-    from slamkit.errors import SourceError
-    from slamkit.sources.base import ImageListSource
-
     folder = tmp_path / "tiny"
     folder.mkdir()
     for i in range(5):
@@ -326,9 +328,6 @@ def test_tiny_frames_name_the_file_and_the_minimum_size(tmp_path, capsys):
 
 
 def test_calibration_messages_name_the_command_line_way(tmp_path, capsys):
-    from slamkit.cli import main
-    from test_sources import make_tum
-
     make_tum(tmp_path / "mytum")  # TUM layout, no freiburgN in the name
     with pytest.raises(CalibrationError, match=r"mytum: cannot tell the TUM sensor.*--camera fx,fy,cx,cy.*"
                                                r"Python: calibration='fr1'"):
@@ -350,8 +349,6 @@ def test_calibration_messages_name_the_command_line_way(tmp_path, capsys):
 
 
 def test_an_impossible_init_window_is_explained_on_the_final_line(tmp_path, capsys):
-    from slamkit.cli import main
-
     folder = write_tum_sequence(synthetic_source("sideways", frames=12, scale=0.25), tmp_path / "seq")
     src = open_tum_sequence(folder)
     src.paths[4].write_bytes(b"\x89PNG\r\n\x1a\n" + b"truncated" * 20)
@@ -366,8 +363,6 @@ def test_an_impossible_init_window_is_explained_on_the_final_line(tmp_path, caps
 
 
 def test_resume_with_other_intrinsics_is_refused(tmp_path, capsys):
-    from slamkit.cli import main
-
     folder = write_tum_sequence(synthetic_source("sideways", frames=8, scale=0.25), tmp_path / "seq")
     (folder / "camera.json").unlink()
     (folder / "rgb.txt").rename(folder / "list.txt")  # a plain image folder: intrinsics from --camera
@@ -384,13 +379,8 @@ def test_resume_with_other_intrinsics_is_refused(tmp_path, capsys):
     assert Slam.resume(out, config={"camera": "585", "max_frames": 6}).camera.fx == 585  # the same is fine
 
 
-RUN_MARKER_NAME = ".slamkit-run"
-
 
 def test_ablate_refuses_negative_workers_and_a_file_as_out(tmp_path, capsys):
-    from slamkit.ablate import sweep
-    from slamkit.cli import main
-
     assert main(["ablate", "synthetic:sideways?frames=8", "--workers", "-3", "--out", str(tmp_path / "s")]) == 2
     assert "--workers -3: must be 0" in _one_line(capsys.readouterr().err)
     (tmp_path / "file").write_text("x")
@@ -404,9 +394,6 @@ def test_ablate_refuses_negative_workers_and_a_file_as_out(tmp_path, capsys):
 
 
 def test_damaged_weight_files_get_one_line_without_torch_advice(tmp_path):
-    import zipfile
-
-    from slamkit.features.learned.weights import check_weight_file, load_error_reason
 
     garbage = tmp_path / "aliked-n16.pth"
     garbage.write_bytes(bytes(range(7, 256)) * 10)
@@ -431,8 +418,6 @@ def test_damaged_weight_files_get_one_line_without_torch_advice(tmp_path):
 
 
 def test_decoder_warnings_name_the_file(tmp_path, capfd):
-    from slamkit.sources.base import read_image
-
     img = (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8)
     data = cv2.imencode(".jpg", img)[1].tobytes()
     bad = tmp_path / "frame_0007.jpg"
