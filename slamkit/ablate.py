@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import ConfigError, SlamkitError
+from .errors import ConfigError, OutputError, SlamkitError
 
 __all__ = ["Grid", "parse_grid", "Task", "plan", "run_one", "sweep", "load_results", "markdown_table",
            "RESULT_COLUMNS"]
@@ -266,6 +266,24 @@ def _is_dask_client(executor) -> bool:
     return type(executor).__module__.startswith("distributed") and hasattr(executor, "submit")
 
 
+def check_sweep_args(out_dir: str | os.PathLike, workers: int | None, *, flag_out: str = "out_dir",
+                     flag_workers: str = "workers") -> Path:
+    """Refuse a negative worker count and a sweep folder that is a file or lies under one, before any run
+    (ConfigError / OutputError naming the option); creates nothing."""
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+        raise ConfigError(f"{flag_workers} {workers}: must be 0 (runs in this process) or a number of local "
+                          "processes >= 1 (default: all cores)")
+    out = Path(out_dir)
+    if str(out_dir).strip() == "":
+        raise OutputError(f"{flag_out} '': an empty path; give the sweep folder")
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{flag_out} {out}: exists and is not a folder; give a folder for the sweep")
+    above = next((p for p in out.parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise OutputError(f"{flag_out} {out}: cannot be created, {above} is a file")
+    return out
+
+
 def sweep(sources: Iterable[str] | str, grid: Grid | Sequence[str] | Mapping[str, Any], out_dir: str | os.PathLike,
           executor=None, *, repeats: int = 1, workers: int | None = None, retry_failed: bool = False,
           on_result: Callable[[dict], None] | None = None, write_outputs: bool = True):
@@ -286,9 +304,12 @@ def sweep(sources: Iterable[str] | str, grid: Grid | Sequence[str] | Mapping[str
         sources = [sources]
     if not isinstance(grid, Grid):
         grid = parse_grid(grid)
-    out_dir = Path(out_dir)
+    out_dir = check_sweep_args(out_dir, workers)
     tasks = plan(sources, grid, repeats)
-    (out_dir / "runs").mkdir(parents=True, exist_ok=True)
+    try:
+        (out_dir / "runs").mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{out_dir}: sweep folder cannot be created ({e.strerror or e})") from e
     atomic_write_text(out_dir / "sweep.json", json.dumps(
         {"sources": list(dict.fromkeys(t.source for t in tasks)), "grid": _jsonable(grid.to_dict()),
          "repeats": repeats}, indent=2))

@@ -4,11 +4,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import shlex
+import signal
 import sys
-import time
+import threading
+import traceback
 from pathlib import Path
 
+import pycolmap
+from tqdm import tqdm
+
+from .ablate import STATUS_OK, check_sweep_args, connect, markdown_table, parse_grid, plan, sweep
+from .config import PRESETS, SlamConfig
 from .errors import SlamkitError
+from .eval import evaluate
+from .eval.report import evaluate_run
+from .io.saved import check_run
+from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, notify, raise_interrupted
+from .io import write_tum
+from .pipeline import Slam
+from .runner import ABORTED, RunOutcome, run_to_folder, summary_line
+from .sources import open_source
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -35,9 +51,7 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
                    help="any config field, dotted for stages, e.g. --set tracker.min_inliers=25")
 
 
-def config_from_args(args: argparse.Namespace):
-    from .config import SlamConfig
-
+def config_from_args(args: argparse.Namespace) -> SlamConfig:
     return SlamConfig.preset(args.preset or "default").with_overrides(**_overrides_from_args(args))
 
 
@@ -58,8 +72,6 @@ def _overrides_from_args(args: argparse.Namespace) -> dict:
 def _resume_overrides(args: argparse.Namespace) -> dict:
     """With --resume: the saved config stays, changed only by what is given explicitly (a --preset's values,
     then the options)."""
-    from .config import PRESETS, SlamConfig
-
     if args.preset is not None:
         SlamConfig.preset(args.preset)  # unknown name -> ConfigError
         return {**PRESETS[args.preset], **_overrides_from_args(args)}
@@ -67,87 +79,81 @@ def _resume_overrides(args: argparse.Namespace) -> dict:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """Run (or with --resume continue) SLAM; on Ctrl-C or a failing stage, save what was built and say so."""
-    import shlex
-
-    import pycolmap
-    from tqdm import tqdm
-
-    from .pipeline import Slam
-    from .session import deferred_interrupt, find_session
-
+    """Run (or with --resume continue) SLAM into --out (:func:`slamkit.runner.run_to_folder`); print progress
+    and the outcome, and map it to the exit code (0, 1 a stage failed, 128 + signal when interrupted)."""
     pycolmap.logging.minloglevel = 2
     out = Path(args.out)
-    slam = None
-    if args.resume:
-        session = find_session(out)
-        if session is None:
-            print(f"slamkit: no session in {out}; starting a new run", file=sys.stderr)
-        else:
-            slam = Slam.resume(session, args.source, _resume_overrides(args) or None)
-            print(f"slamkit: resuming the session in {session} after frame {len(slam.records)}", file=sys.stderr)
-    if slam is None:
-        slam = Slam(args.source, config_from_args(args))
-    cam = slam.camera
-    print(f"slamkit: {slam.source!r}, {len(slam) - len(slam.records)} frames to process -> {out}; camera fx={cam.fx:g} "
-          f"fy={cam.fy:g} cx={cam.cx:g} cy={cam.cy:g}{' (--camera)' if slam.config.camera else ''}", file=sys.stderr)
-    bar = tqdm(total=len(slam), initial=len(slam.records), unit="frame", disable=args.quiet, dynamic_ncols=True)
-    code, stopped = 0, ""
-    try:
-        for r in slam:
-            bar.update(1)
-            bar.set_postfix_str(f"{r.status} kf={r.num_keyframes} pts={r.num_points}", refresh=False)
-            if args.verbose:
-                tqdm.write(str(r))
-        with deferred_interrupt():  # the final bundle adjustment is not cut in half either
-            slam.finish()
-    except KeyboardInterrupt:
-        code, stopped = 130, f"interrupted after frame {len(slam.records) - 1} ({len(slam.records)}/{len(slam)} frames)"
-    except Exception as e:  # a stage failed: keep what was built, then report
-        last = slam.records[-1] if slam.records else None
-        failed = last is not None and last.index in slam.errors
-        where = (f"frame {last.index} (frame id {last.frame_id}) failed" if failed
-                 else "finishing the run failed" if slam.done else f"failed after frame {len(slam.records) - 1}")
-        code, stopped = 1, f"{where}: {type(e).__name__}: {e}"
-        if not isinstance(e, SlamkitError):
-            import traceback
+    bar = None
 
-            traceback.print_exc()
-    finally:
-        bar.close()
-    try:
-        with deferred_interrupt():  # a first Ctrl-C waits for the (atomic) save to finish
-            slam.save(out)
-    except KeyboardInterrupt:
-        print(f"slamkit: interrupted while saving; {out} was left as it was", file=sys.stderr)
-        return 130
-    s = slam.summary()
-    print(f"frames {s['frames']}/{s['frames_total']}, posed {s['frames_posed']} ({100 * s['fraction_posed']:.1f} %), "
-          f"keyframes {s['keyframes']}, points {s['points3D']}, {s['fps']:.1f} frames/s", file=sys.stderr)
-    gt = out / "groundtruth_tum.txt"
-    if gt.exists() and s["frames_posed"] >= 3:
-        from .eval import evaluate
+    def note(line: str) -> None:
+        notify(f"slamkit: {line}")
 
+    def on_start(slam: Slam, resumed_after: int | None) -> None:
+        nonlocal bar
+        if resumed_after is not None:
+            note(f"resuming the session in {out} after frame {resumed_after}")
+        cam = slam.camera
+        print(f"slamkit: {slam.source!r}, {len(slam) - len(slam.records)} frames to process -> {out}; camera "
+              f"fx={cam.fx:g} fy={cam.fy:g} cx={cam.cx:g} cy={cam.cy:g}{' (--camera)' if slam.config.camera else ''}",
+              file=sys.stderr)
+        bar = tqdm(total=len(slam), initial=len(slam.records), unit="frame", disable=args.quiet, dynamic_ncols=True)
+
+    def on_result(slam: Slam, r) -> None:
+        bar.update(1)
+        bar.set_postfix_str(f"{r.status} kf={r.num_keyframes} pts={r.num_points}", refresh=False)
+        if args.verbose:
+            tqdm.write(str(r))
+
+    outcome = None
+    with StopRequest() as stop:  # signals are handled until the last line is printed
         try:
-            ev = evaluate(out / "trajectory_tum.txt", gt)
-            print(f"ATE RMSE {ev['ate']['rmse']:.4f} m (Sim(3)-aligned, {ev['matched']} poses)",
-                  file=sys.stderr)
-        except SlamkitError as e:
-            print(f"evaluation skipped: {e}", file=sys.stderr)
+            outcome = run_to_folder(args.source, args.out, config_from_args(args), resume=args.resume,
+                                    resume_overrides=_resume_overrides(args) if args.resume else None,
+                                    overwrite=args.overwrite, on_start=on_start, on_result=on_result, notify=note,
+                                    stop=stop)
+            if bar is not None:
+                bar.close()
+            return _report_run(args, outcome)
+        except Interrupted as e:  # the last signal arrived before the first frame, or after the save
+            held = (f"{out} was left as it was" if outcome is None or not outcome.saved else
+                    f"{out} holds this run, saved")
+            print(f"slamkit: {e}: stopped at once; {held}", file=sys.stderr)
+            return e.exit_code
+        finally:
+            if bar is not None:
+                bar.close()
+
+
+def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
+    out = outcome.out
+    if outcome.error is not None and not isinstance(outcome.error, SlamkitError):
+        traceback.print_exception(outcome.error)
+    if not outcome.saved or outcome.status == ABORTED:
+        print(f"slamkit: {outcome.message}", file=sys.stderr)
+        return outcome.exit_code
+    print(summary_line(outcome.summary), file=sys.stderr)
+    if outcome.ate is not None:
+        print(f"ATE RMSE {outcome.ate['rmse']:.4f} m (Sim(3)-aligned, {outcome.ate['matched']} poses)",
+              file=sys.stderr)
+    elif outcome.evaluation_error:
+        print(f"evaluation skipped: {outcome.evaluation_error}", file=sys.stderr)
     print(f"outputs in {out}/ (trajectory_tum.txt, keyframes_tum.txt, trajectory_kitti.txt, sparse/, points.ply, "
           f"summary.json, session/)")
-    if stopped:
+    if outcome.message and outcome.complete:
+        print(f"slamkit: {outcome.message}; saved in {out}", file=sys.stderr)
+    elif outcome.message:
         again = f"slamkit run {shlex.quote(args.source)} --out {shlex.quote(str(out))} --resume"
-        print(f"slamkit: {stopped}; the map, trajectory and session so far are saved in {out} "
+        print(f"slamkit: {outcome.message}; the map, trajectory and session so far are saved in {out} "
               f"(continue with: {again})", file=sys.stderr)
-    return code
+    return outcome.exit_code
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
     run = Path(args.run)
+    if not run.exists():
+        raise SlamkitError(f"{run}: does not exist (give a run folder written by `slamkit run --out`, or a "
+                           "trajectory file)")
     if run.is_dir() and not args.json_only:
-        from .eval.report import evaluate_run
-
         result = evaluate_run(run, gt=args.gt, max_dt=args.max_dt, map_view=not args.no_map_view)
         a, k = result["all_frames"]["ate"], (result.get("keyframes") or {}).get("ate")
         print(f"ATE RMSE {100 * a['rmse']:.2f} cm over {a['count']} frames"
@@ -155,8 +161,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
               + f" (Sim(3)-aligned); report: {result['report_md']} and {result['report_html']}", file=sys.stderr)
         print(json.dumps(result, indent=2))
         return 0
-    from .eval import evaluate
-
+    if run.is_dir():
+        check_run(run, ("trajectory_tum.txt", "groundtruth_tum.txt"))
     est = run / "trajectory_tum.txt" if run.is_dir() else run
     gt = Path(args.gt) if args.gt else run / "groundtruth_tum.txt"
     if not gt.exists():
@@ -167,8 +173,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    from .ablate import STATUS_OK, connect, parse_grid, plan, sweep
-
+    check_sweep_args(args.out, args.workers, flag_out="--out", flag_workers="--workers")
     items = list(args.grid)
     if args.features:
         items.append(f"features={args.features}")
@@ -180,8 +185,6 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     print(f"slamkit ablate: {len(args.sources)} source(s) x {len(grid)} combination(s) x {args.repeats} "
           f"repeat(s) = {len(tasks)} runs on {args.scheduler or (f'{args.workers} local processes' if args.workers else 'all cores' if args.workers is None else 'this process')} -> {args.out}",
           file=sys.stderr)
-    from tqdm import tqdm
-
     bar = tqdm(total=len(tasks), unit="run", disable=args.quiet, dynamic_ncols=True)
 
     def progress(row: dict) -> None:
@@ -192,10 +195,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     try:
         df = sweep(args.sources, grid, args.out, executor, repeats=args.repeats, workers=args.workers,
                    retry_failed=args.retry_failed, on_result=progress)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP (Interrupted, exit code 143 / 129)
         print(f"slamkit ablate: interrupted; finished runs are kept in {args.out}/runs/ — run the same command "
               "again to finish the sweep", file=sys.stderr)
-        return 130
+        return getattr(e, "exit_code", 130)
     finally:
         bar.close()
         if client is not None:
@@ -203,17 +206,12 @@ def cmd_ablate(args: argparse.Namespace) -> int:
     ok = int((df["status"] == STATUS_OK).sum())
     print(f"{ok}/{len(df)} runs ok ({int(df['cached'].sum())} reused from an earlier sweep); "
           f"{args.out}/results.csv, results.md, effects.png", file=sys.stderr)
-    from .ablate import markdown_table
-
     cols = ["source", *grid.names, "seed", "status", "ate_rmse_m", "fraction_posed", "keyframes", "fps", "error"]
     print(markdown_table(df, cols))
     return 0 if ok == len(df) else 1
 
 
 def cmd_gt(args: argparse.Namespace) -> int:
-    from .io import write_tum
-    from .sources import open_source
-
     src = open_source(args.source)
     gt = src.ground_truth()
     if gt is None or len(gt) == 0:
@@ -224,8 +222,6 @@ def cmd_gt(args: argparse.Namespace) -> int:
 
 
 def cmd_presets(args: argparse.Namespace) -> int:
-    from .config import PRESETS
-
     for name, values in PRESETS.items():
         print(f"{name:10s} {values}")
     return 0
@@ -236,7 +232,11 @@ def main(argv: list[str] | None = None) -> int:
     sub = p.add_subparsers(dest="command", required=True)
     r = sub.add_parser("run", help="run SLAM on a source and save the map and trajectory")
     r.add_argument("source", help="'default', 'synthetic:<motion>', a dataset folder, an image folder or a video")
-    r.add_argument("--out", required=True, help="output folder (replaced atomically; keeps a session/ to resume)")
+    r.add_argument("--out", required=True,
+                   help="run folder: a new or empty folder, or an earlier slamkit run (replaced atomically; keeps a "
+                        "session/ to resume); never inside the source")
+    r.add_argument("--overwrite", action="store_true",
+                   help="replace --out even when it holds other files than a slamkit run (they are deleted)")
     r.add_argument("--resume", action="store_true",
                    help="continue the run saved in --out (its session/) if there is one: same source, the saved "
                         "config changed only by the options given; else start a new run")
@@ -271,11 +271,46 @@ def main(argv: list[str] | None = None) -> int:
     pr = sub.add_parser("presets", help="list configuration presets")
     pr.set_defaults(func=cmd_presets)
     args = p.parse_args(argv)
+    handler = _SignalsInterrupt()
+    previous = handler.install()
     try:
         return args.func(args)
     except SlamkitError as e:
+        handler.active = False
         print(f"slamkit: error: {e}", file=sys.stderr)
         return 2
+    except Interrupted as e:  # SIGTERM / SIGHUP outside a run: a one-line exit, not a native stack dump
+        handler.active = False
+        print(f"slamkit: {e}: stopped", file=sys.stderr)
+        return e.exit_code
+    finally:
+        handler.active = False
+        if argv is not None:  # called from Python: give the handlers back
+            for s, h in previous.items():
+                signal.signal(s, h if h is not None else signal.SIG_DFL)
+        else:  # as a program: the outcome is decided; a late signal must not kill the exiting process
+            for s in previous:
+                signal.signal(s, signal.SIG_IGN)
+
+
+class _SignalsInterrupt:
+    """SIGTERM and SIGHUP raise :class:`Interrupted` like Ctrl-C does while a command runs (not when ignored,
+    as under nohup); inert once ``active`` is False. ``slamkit run`` replaces it by its StopRequest."""
+
+    def __init__(self):
+        self.active = True
+
+    def __call__(self, signum: int, frame) -> None:
+        if self.active:
+            raise_interrupted(signum, frame)
+
+    def install(self) -> dict:
+        previous = {}
+        if threading.current_thread() is threading.main_thread():
+            for s in HELD_SIGNALS:
+                if s != signal.SIGINT and signal.getsignal(s) is not signal.SIG_IGN:
+                    previous[s] = signal.signal(s, self)
+        return previous
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -51,3 +51,7 @@ class ConfigError(SlamkitError, ValueError):
 
 class OutputError(SlamkitError):
     """An output folder or file cannot be written."""
+
+
+class SessionError(SlamkitError):
+    """A saved run or session is missing, damaged, or does not belong to the given source."""

@@ -234,7 +234,14 @@ class Slam:
 
     def _step_failed(self, e: BaseException, cursor: int, num_records: int, last_result) -> None:
         """Leave the state of whole frames after ``_step`` raised: the frame is consumed and marked "error"
-        without a pose (unless it already became a keyframe, or only a callback failed after it was done)."""
+        without a pose (unless it already became a keyframe, or only a callback failed after it was done).
+        An interrupt is no failure: a frame it cut short before the frame changed any state is given back (the
+        next step or a resume processes it), and a frame whose callback it cut short stays as it was."""
+        untouched, done = len(self.records) == num_records, self.last_result is not last_result
+        if isinstance(e, KeyboardInterrupt) and (untouched or done):
+            self._cursor = cursor if untouched else self._cursor
+            e.add_note(f"slamkit: interrupted at frame {cursor}; earlier frames are kept, save() works")
+            return
         self._cursor = max(self._cursor, cursor + 1)
         if len(self.records) == num_records:  # failed before its record existed (reading, features)
             i = int(self.indices[cursor])

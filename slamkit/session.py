@@ -26,8 +26,12 @@ and the graph; ``IncrementalTriangulator`` clears its caches on every call and k
 modified since the last bundle adjustment (non-empty between initialization and the first keyframe), which
 is saved and restored.
 
-Interruption: :func:`deferred_interrupt` holds Ctrl-C back until the current SLAM step is complete, so the
-state is always that of whole frames and can be saved.
+Interruption: :func:`slamkit.interrupt.deferred_interrupt` (re-exported here) holds Ctrl-C, SIGTERM and SIGHUP
+back until the current SLAM step is complete, so the state is always that of whole frames and can be saved.
+
+Before anything is read, :func:`slamkit.io.saved.check_session` checks the files against the sizes and
+checksums recorded when the session was saved, and the COLMAP binaries, JSON and ``.npz`` files against their
+formats: a truncated or damaged file is a SessionError naming it, never a hang inside pycolmap's reader.
 """
 
 from __future__ import annotations
@@ -38,9 +42,8 @@ import dataclasses
 import hashlib
 import heapq
 import json
-import signal
-import threading
 import time
+import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
 
@@ -49,8 +52,10 @@ import pycolmap
 
 from .camera import Intrinsics
 from .config import SlamConfig
-from .errors import ConfigError, SlamkitError
+from .errors import ConfigError, SessionError, SlamkitError  # noqa: F401 - SessionError lived here
 from .features import Features, FrameFeatures
+from .interrupt import deferred_interrupt  # noqa: F401 - re-exported: it lived here (pipeline imports it from here)
+from .io.saved import check_session
 from .map import CAMERA_ID, Keyframe, SlamMap
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -62,8 +67,9 @@ SESSION_FILE = "session.json"
 SESSION_DIR = "session"
 """Name of the session folder inside a saved run folder."""
 
-STRUCTURAL_FIELDS = ("features", "matcher", "frame_skip")
-"""Config fields the saved state depends on: a resumed run cannot change them."""
+STRUCTURAL_FIELDS = ("features", "matcher", "frame_skip", "camera")
+"""Config fields the saved state depends on: a resumed run cannot change them (the intrinsics are part of the
+saved map: its points were triangulated with them)."""
 
 _SLAM_SCALARS = ("_cursor", "last_keyframe", "_points_at_last_keyframe", "_consecutive_lost", "wall_time",
                  "cpu_time", "finished")
@@ -75,18 +81,16 @@ _SLAM_HANDLED = set(_SLAM_SCALARS) | {
 number, string or bool is saved too (``extra``), so a new counter in the pipeline survives a resume."""
 
 
-class SessionError(SlamkitError):
-    """A session folder is missing, unreadable, or does not belong to the given source."""
-
-
 # ----------------------------------------------------------------------------------------------- saving
 def save_session(slam: "Slam", out_dir: str | Path) -> Path:
     """Write ``slam``'s session to ``out_dir`` (replaced atomically); returns the folder."""
     from .io.atomic import atomic_dir
+    from .io.run_dir import SESSION_MARKER, write_manifest
 
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         write_session(slam, tmp)
+        write_manifest(tmp, SESSION_MARKER)  # sizes and checksums, checked before it is read
     return out_dir
 
 
@@ -247,6 +251,7 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     if folder is None:
         raise SessionError(f"{path}: no session found (expected {Path(path) / SESSION_DIR / SESSION_FILE}; "
                            "a run saved with slam.save() or `slamkit run --out` has one)")
+    check_session(folder)  # sizes, checksums and formats first: a damaged file never reaches pycolmap's reader
     try:
         meta = json.loads((folder / SESSION_FILE).read_text())
     except (OSError, ValueError) as e:
@@ -410,8 +415,8 @@ def _npz(path: Path) -> Iterator[dict]:
     try:
         with np.load(path, allow_pickle=False) as z:
             yield {k: z[k] for k in z.files}
-    except (OSError, ValueError) as e:
-        raise SessionError(f"{path}: cannot be read ({e})") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise SessionError(f"{path}: cannot be read ({type(e).__name__}: {e})") from None
 
 
 def _put_list(arrays: dict, name: str, values: list) -> None:
@@ -506,36 +511,3 @@ def _local_map_to(lm, arrays: dict) -> dict:
         arrays[f"local_map__{name}"] = np.asarray(getattr(lm, name))
     return {"binary": bool(lm.binary), "ref_image_id": int(lm.ref_image_id),
             "keyframe_ids": [int(i) for i in lm.keyframe_ids]}
-
-
-# ----------------------------------------------------------------------------------------------- interruption
-@contextlib.contextmanager
-def deferred_interrupt() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT) back until the block ends, then raise it (``KeyboardInterrupt``).
-
-    Wrapped around one SLAM step (and around saving in the CLI), so an interrupt never leaves half a frame
-    in the map: the step completes, then the interrupt arrives. A second Ctrl-C inside the block interrupts
-    at once. Only in the main thread (signal handlers live there); elsewhere, or when SIGINT is ignored or
-    has its OS default action, the block runs unchanged.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.getsignal(signal.SIGINT)
-    if not callable(previous):  # SIG_IGN, SIG_DFL or not set from Python: leave it alone
-        yield
-        return
-    received: list[tuple] = []
-
-    def hold(signum, frame):
-        if received:
-            raise KeyboardInterrupt
-        received.append((signum, frame))
-
-    signal.signal(signal.SIGINT, hold)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-    if received:
-        previous(*received[0])  # Python's default handler raises KeyboardInterrupt

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import zipfile
 from dataclasses import replace
 
 import cv2
@@ -17,20 +18,25 @@ import numpy as np
 import pycolmap
 import pytest
 
+from slamkit.ablate import sweep
 from slamkit.camera import Intrinsics
+from slamkit.cli import main
 from slamkit.config import SlamConfig
-from slamkit.errors import CalibrationError, ConfigError, OutputError, SlamkitError
+from slamkit.errors import CalibrationError, ConfigError, OutputError, SlamkitError, SourceError
 from slamkit.eval import ate
+from slamkit.features.learned.weights import check_weight_file, load_error_reason
 from slamkit.pipeline import Slam
 from slamkit.sources import open_euroc, open_kitti, open_sevenscenes, open_source, open_video
+from slamkit.sources.base import ImageListSource, read_image
 from slamkit.sources.scene import default_room
 from slamkit.sources.synthetic import SyntheticSource, open_tum_sequence, synthetic_source, write_tum_sequence
 
-from test_sources import make_7scenes, make_euroc, make_kitti, make_video
+from test_sources import make_7scenes, make_euroc, make_kitti, make_tum, make_video
 
 pycolmap.logging.minloglevel = 2
 
 INIT = {"init_frames": 10}
+RUN_MARKER_NAME = ".slamkit-run"
 
 
 @pytest.fixture(scope="module")
@@ -296,3 +302,126 @@ def _nested(values: dict) -> dict:
         stage, field = ALIASES.get(key, key).split(".")
         out[stage] = replace(out.get(stage, getattr(cfg, stage)), **{field: v})
     return out
+
+
+# ----------------------------------------------------------------------------- issue 22: clear one-line messages
+def _one_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    return lines[0]
+
+
+def test_tiny_frames_name_the_file_and_the_minimum_size(tmp_path, capsys):
+    folder = tmp_path / "tiny"
+    folder.mkdir()
+    for i in range(5):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((1, 1, 3), 100, np.uint8))
+    with pytest.raises(SourceError, match=r"000\.png: frames of .* are 1x1 pixels; slamkit needs at least 32x32"):
+        open_source(folder)
+    assert main(["run", str(folder), "--out", str(tmp_path / "out"), "-q"]) == 2
+    assert "1x1 pixels" in _one_line(capsys.readouterr().err) and not (tmp_path / "out").exists()
+    # a tiny frame among frames of the right size: skipped with that reason, no OpenCV assertion
+    src = ImageListSource("mixed", Intrinsics(640, 480, 500, 500, 320, 240), [folder / "000.png"] * 3,
+                          np.arange(3.0), np.arange(3))
+    r = Slam(src).step()
+    assert r.status == "skipped" and "000.png: is 1x1 pixels; slamkit needs frames of at least 32x32" in r.message
+
+
+def test_calibration_messages_name_the_command_line_way(tmp_path, capsys):
+    make_tum(tmp_path / "mytum")  # TUM layout, no freiburgN in the name
+    with pytest.raises(CalibrationError, match=r"mytum: cannot tell the TUM sensor.*--camera fx,fy,cx,cy.*"
+                                               r"Python: calibration='fr1'"):
+        open_source(tmp_path / "mytum")
+    assert main(["run", str(tmp_path / "mytum"), "--out", str(tmp_path / "o1"), "-q"]) == 2
+    assert "--camera fx,fy,cx,cy" in _one_line(capsys.readouterr().err)
+    make_euroc(tmp_path / "euroc", n=3)
+    yaml = tmp_path / "euroc" / "mav0" / "cam0" / "sensor.yaml"
+    yaml.unlink()
+    with pytest.raises(CalibrationError, match=rf"{yaml}: missing; give the intrinsics: --camera fx,fy,cx,cy.*"
+                                               r"Python: camera=Intrinsics"):
+        open_euroc(tmp_path / "euroc")
+    make_kitti(tmp_path / "kitti", "03", n=3)
+    calib = tmp_path / "kitti" / "sequences" / "03" / "calib.txt"
+    calib.unlink()
+    for path in (tmp_path / "kitti", tmp_path / "kitti" / "sequences" / "03"):  # dataset root or sequence folder
+        with pytest.raises(SlamkitError, match=rf"{calib}: missing; a KITTI sequence folder holds calib.txt"):
+            open_source(path)
+
+
+def test_an_impossible_init_window_is_explained_on_the_final_line(tmp_path, capsys):
+    folder = write_tum_sequence(synthetic_source("sideways", frames=12, scale=0.25), tmp_path / "seq")
+    src = open_tum_sequence(folder)
+    src.paths[4].write_bytes(b"\x89PNG\r\n\x1a\n" + b"truncated" * 20)
+    out = tmp_path / "out"
+    assert main(["run", str(folder / "rgb"), "--out", str(out), "-q", "--camera", "125", "--init-frames", "100000"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    line = next(x for x in err if x.startswith("frames "))
+    assert "posed 0 (0.0 %)" in line and "1 frame skipped (1 unreadable, e.g. frame 4: " in line, line
+    assert src.paths[4].name in line
+    assert "no map: the sequence has 12 frames, fewer than the initialization window " \
+           "(initializer.init_frames = 100000)" in line
+
+
+def test_resume_with_other_intrinsics_is_refused(tmp_path, capsys):
+    folder = write_tum_sequence(synthetic_source("sideways", frames=8, scale=0.25), tmp_path / "seq")
+    (folder / "camera.json").unlink()
+    (folder / "rgb.txt").rename(folder / "list.txt")  # a plain image folder: intrinsics from --camera
+    out = tmp_path / "out"
+    assert main(["run", str(folder / "rgb"), "--out", str(out), "-q", "--camera", "585", "--max-frames", "4"]) == 0
+    before = (out / RUN_MARKER_NAME).read_bytes()
+    capsys.readouterr()
+    assert main(["run", str(folder / "rgb"), "--out", str(out), "-q", "--camera", "300", "--resume"]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "camera cannot change when resuming (session: '585', given: '300')" in line
+    assert (out / RUN_MARKER_NAME).read_bytes() == before  # the saved run is untouched
+    with pytest.raises(ConfigError, match="camera cannot change when resuming"):
+        Slam.resume(out, config={"camera": "300"})
+    assert Slam.resume(out, config={"camera": "585", "max_frames": 6}).camera.fx == 585  # the same is fine
+
+
+
+def test_ablate_refuses_negative_workers_and_a_file_as_out(tmp_path, capsys):
+    assert main(["ablate", "synthetic:sideways?frames=8", "--workers", "-3", "--out", str(tmp_path / "s")]) == 2
+    assert "--workers -3: must be 0" in _one_line(capsys.readouterr().err)
+    (tmp_path / "file").write_text("x")
+    assert main(["ablate", "synthetic:sideways?frames=8", "--out", str(tmp_path / "file")]) == 2
+    assert f"--out {tmp_path / 'file'}: exists and is not a folder" in _one_line(capsys.readouterr().err)
+    assert main(["ablate", "synthetic:sideways?frames=8", "--out", str(tmp_path / "file" / "sub")]) == 2
+    assert "is a file" in _one_line(capsys.readouterr().err)
+    with pytest.raises(ConfigError, match="workers -3"):
+        sweep("synthetic:sideways?frames=8", {"flow_threshold": [0.05]}, tmp_path / "s", workers=-3)
+    assert not (tmp_path / "s").exists()
+
+
+def test_damaged_weight_files_get_one_line_without_torch_advice(tmp_path):
+
+    garbage = tmp_path / "aliked-n16.pth"
+    garbage.write_bytes(bytes(range(7, 256)) * 10)
+    with pytest.raises(ConfigError) as e:
+        check_weight_file(garbage)
+    msg = str(e.value)
+    assert msg.startswith(f"{garbage}: not a PyTorch weight file") and "github.com/Shiaoming/ALIKED" in msg
+    assert "weights_only" not in msg and "\n" not in msg
+    empty = tmp_path / "xfeat.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(ConfigError, match="empty"):
+        check_weight_file(empty)
+    other_zip = tmp_path / "superpoint_v1.pth"
+    with zipfile.ZipFile(other_zip, "w") as z:
+        z.writestr("readme.txt", "not weights")
+    with pytest.raises(ConfigError, match="a zip archive but not a PyTorch weight file"):
+        check_weight_file(other_zip)
+    advice = ("Weights only load failed. This file can still be loaded, to do so you have two options, ...\n"
+              "(1) In PyTorch 2.6, we changed the default value of the `weights_only` argument ...")
+    reason = load_error_reason(RuntimeError(advice))
+    assert "weights_only=True" in reason and "\n" not in reason and "two options" not in reason
+
+
+def test_decoder_warnings_name_the_file(tmp_path, capfd):
+    img = (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8)
+    data = cv2.imencode(".jpg", img)[1].tobytes()
+    bad = tmp_path / "frame_0007.jpg"
+    bad.write_bytes(data[: len(data) // 2] + b"\xff\xd9")  # libjpeg: "Corrupt JPEG data: premature end ..."
+    assert read_image(bad).shape == (64, 64, 3)
+    err = capfd.readouterr().err
+    assert f"slamkit: {bad}: Corrupt JPEG data" in err, err

@@ -291,11 +291,15 @@ def test_atomic_dir_replaces_folder_or_keeps_the_old_one(tmp_path):
         assert d != out and d.parent == tmp_path
         (d / "a.txt").write_text("first")
     assert (out / "a.txt").read_text() == "first"
-    with atomic_dir(out) as d:
+    with pytest.raises(OutputError, match="not a slamkit run"):  # a folder slamkit did not write is never replaced
+        with atomic_dir(out) as d:
+            (d / "b.txt").write_text("second")
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt"]
+    with atomic_dir(out, overwrite=True) as d:  # ... unless asked to
         (d / "b.txt").write_text("second")
     assert sorted(p.name for p in out.iterdir()) == ["b.txt"]
     with pytest.raises(KeyError):
-        with atomic_dir(out) as d:
+        with atomic_dir(out, overwrite=True) as d:
             (d / "c.txt").write_text("third")
             raise KeyError("boom")
     assert sorted(p.name for p in out.iterdir()) == ["b.txt"]

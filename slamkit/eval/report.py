@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SlamkitError
+from ..errors import SessionError, SlamkitError
 from ..io import atomic_write_text, read_trajectory
+from ..io.saved import check_json, check_run
 from ..types import Trajectory
 from .metrics import ate, rpe
 
@@ -50,6 +51,9 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     numbers with the paths written. SlamkitError naming the file when the run folder, its trajectory or
     the ground truth is missing or too short to align."""
     run = Path(run_dir)
+    if not run.exists():
+        raise SlamkitError(f"{run}: does not exist, so it is not a run folder (expected the output folder of "
+                           "`slamkit run`)")
     if not run.is_dir():
         raise SlamkitError(f"{run}: not a run folder (expected the output folder of `slamkit run`)")
     traj_path = run / "trajectory_tum.txt"
@@ -58,10 +62,16 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     gt_path = Path(gt) if gt is not None else run / "groundtruth_tum.txt"
     if not gt_path.exists():
         raise SlamkitError(f"{gt_path}: no ground truth; pass gt=FILE (--gt FILE)")
+    # what is read is checked first against the run's manifest and formats (a damaged sparse/ model would
+    # otherwise hang pycolmap's reader in the map view)
+    check_run(run, ("trajectory_tum.txt", "keyframes_tum.txt", "groundtruth_tum.txt", "summary.json",
+                    *(("sparse",) if map_view else ())))
     est, gt_traj = _read(traj_path), _read(gt_path)
     summary = {}
     if (run / "summary.json").exists():
-        summary = json.loads((run / "summary.json").read_text())
+        summary = check_json(run / "summary.json")
+        if not isinstance(summary, dict):
+            raise SessionError(f"{run / 'summary.json'}: not a slamkit summary (a JSON {type(summary).__name__})")
     all_frames, a, r = _stats(gt_traj, est, max_dt)
     kf_path = run / "keyframes_tum.txt"
     keyframes, kf_traj = None, None

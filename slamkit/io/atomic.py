@@ -21,6 +21,8 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from ..errors import OutputError
+from ..interrupt import signals_blocked
+from .run_dir import is_replaceable
 
 __all__ = ["atomic_write_text", "atomic_write_bytes", "atomic_dir"]
 
@@ -110,39 +112,68 @@ def atomic_write_text(path: str | os.PathLike, text: str | Iterable[str], encodi
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
     """Context manager: fill a temporary sibling folder, which replaces ``path`` when the block succeeds.
 
     ``with atomic_dir("out/run1") as d: (d / "a.txt").write_text(...)`` — inside the block ``d`` is the
     temporary folder (``out/.run1.XXXX.tmp``). On a clean exit it is renamed to ``out/run1``; an old
-    ``out/run1`` is moved aside first and deleted afterwards. If the block raises, the temporary folder is
-    deleted and the old folder is untouched. OutputError when the parent is not writable or ``path`` is a file.
+    ``out/run1`` is moved aside first and deleted afterwards. If the block raises (an error, Ctrl-C, SIGTERM
+    under :mod:`slamkit.interrupt`), the temporary folder is deleted and the old folder is untouched; the two
+    renames run with those signals blocked, and are undone if anything still comes between them.
+    OutputError when the parent is not writable, ``path`` is a file, or ``path`` is a non-empty folder that
+    slamkit did not write (:func:`slamkit.io.run_dir.is_replaceable`) and ``overwrite`` is False: a
+    user's folder is never deleted by accident.
     """
     path = Path(path)
     parent = _prepare_parent(path)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{path}: exists and is not a folder, will not replace it with one")
+    if not overwrite and not is_replaceable(path):
+        raise OutputError(f"{path}: folder is not empty and is not a slamkit run or session; will not replace it "
+                          "(choose another folder, or overwrite=True / --overwrite)")
     try:
         tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp"))
     except OSError as e:
         raise OutputError(f"{parent}: output folder is not writable ({e.strerror or e})") from e
     try:
         yield tmp
+        # mkdtemp creates 0o700; give the result the usual folder permissions
+        mask = os.umask(0)
+        os.umask(mask)
+        os.chmod(tmp, 0o777 & ~mask)
+        backup = _commit(tmp, path, parent)
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove_tree(tmp)
         raise
-    # mkdtemp creates 0o700; give the result the usual folder permissions
-    mask = os.umask(0)
-    os.umask(mask)
+    if backup is not None:
+        _remove_tree(backup)
+    _fsync_dir(parent)
+
+
+def _remove_tree(folder: Path) -> None:
+    """``rmtree`` that completes even when an interrupt arrives meanwhile (it is raised again afterwards), so
+    no temporary folder survives Ctrl-C or SIGTERM."""
+    pending: BaseException | None = None
+    for _ in range(5):
+        try:
+            shutil.rmtree(folder, ignore_errors=True)
+            break
+        except KeyboardInterrupt as e:
+            pending = e
+    if pending is not None:
+        raise pending
+
+
+def _commit(tmp: Path, path: Path, parent: Path) -> Path | None:
+    """Rename ``tmp`` to ``path``, the old ``path`` moved into a backup folder first (returned, to delete)."""
     backup: Path | None = None
     try:
-        os.chmod(tmp, 0o777 & ~mask)
-        if path.exists():
-            backup = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".old"))
-            os.replace(path, backup / path.name)
-        os.replace(tmp, path)
-    except OSError as e:
-        shutil.rmtree(tmp, ignore_errors=True)
+        with signals_blocked():
+            if path.exists():
+                backup = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".old"))
+                os.replace(path, backup / path.name)
+            os.replace(tmp, path)
+    except BaseException as e:
         note = ""
         if backup is not None:
             moved = backup / path.name
@@ -152,8 +183,8 @@ def atomic_dir(path: str | os.PathLike) -> Iterator[Path]:
                 except OSError:
                     note = f"; the old folder is kept at {moved}"
             if not note:
-                shutil.rmtree(backup, ignore_errors=True)
-        raise OutputError(f"{path}: folder cannot be replaced ({e.strerror or e}){note}") from e
-    if backup is not None:
-        shutil.rmtree(backup, ignore_errors=True)
-    _fsync_dir(parent)
+                _remove_tree(backup)
+        if isinstance(e, OSError):
+            raise OutputError(f"{path}: folder cannot be replaced ({e.strerror or e}){note}") from e
+        raise
+    return backup

@@ -10,6 +10,8 @@ several):
 - ``groundtruth_tum.txt`` the source's ground truth of the used frames, when it has one
 - ``session/`` everything ``Slam.resume(DIR)`` needs to continue the run (:mod:`slamkit.session`: COLMAP
   models of every segment, JSON state and ``.npz`` arrays, no pickle)
+- ``.slamkit-run`` the marker: size and SHA-256 of every file above (``session/.slamkit-session.json`` likewise),
+  checked before a run is read again (:mod:`slamkit.io.saved`)
 
 Frames a stage failed on have status ``error`` in ``frames.csv`` (message in its ``error`` column and in
 ``summary.json["errors"]``).
@@ -17,6 +19,7 @@ Frames a stage failed on have status ``error`` in ``frames.csv`` (message in its
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
@@ -26,35 +29,52 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .atomic import atomic_dir
+from .run_dir import RUN_MARKER, SESSION_MARKER, check_out_dir, out_dir_lock, write_manifest
 from .trajectory import write_kitti, write_tum
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..pipeline import Slam
 
 
-def save_run(slam: "Slam", out_dir: str | Path, session: bool = True) -> Path:
+def save_run(slam: "Slam", out_dir: str | Path, session: bool = True, overwrite: bool = False,
+             lock: bool = True) -> Path:
     """Write ``slam``'s state to ``out_dir`` (replaced atomically: a crash never leaves half a folder), with a
-    resumable session in ``out_dir/session/`` unless ``session=False``."""
-    out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
-        _write_segment(slam, None, tmp)
-        if len(slam.segments) > 1:
-            for seg in slam.segments:
-                _write_segment(slam, seg.id, tmp / "segments" / f"segment_{seg.id:02d}")
-        summary = slam.summary()
-        errors = getattr(slam, "errors", {})
-        if errors:
-            summary["errors"] = {str(k): v for k, v in sorted(errors.items())}
-        (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2))
-        (tmp / "frames.csv").write_text(_frames_csv(slam))
-        gt = _ground_truth(slam)
-        if gt is not None and len(gt):
-            write_tum(tmp / "groundtruth_tum.txt", gt)
-        if session:
-            from ..session import SESSION_DIR, write_session
+    resumable session in ``out_dir/session/`` unless ``session=False``, and the marker ``.slamkit-run``
+    listing the size and SHA-256 of every file written (readers check them first).
 
-            write_session(slam, tmp / SESSION_DIR)
+    ``out_dir`` must pass :func:`slamkit.io.run_dir.check_out_dir`: a folder holding other files than a
+    slamkit run is refused (OutputError) unless ``overwrite=True``, and a folder equal to, inside or holding
+    the source is always refused. ``lock``: hold ``out_dir``'s lock while writing (False when the caller
+    already holds it, as ``slamkit run`` does for the whole run).
+    """
+    out_dir = Path(out_dir)
+    check_out_dir(out_dir, [getattr(slam, "source_spec", None), slam.source], overwrite, flag="out_dir")
+    with out_dir_lock(out_dir, flag="out_dir") if lock else contextlib.nullcontext():
+        with atomic_dir(out_dir, overwrite=overwrite) as tmp:
+            _write_run(slam, tmp, session)
     return out_dir
+
+
+def _write_run(slam: "Slam", tmp: Path, session: bool) -> None:
+    _write_segment(slam, None, tmp)
+    if len(slam.segments) > 1:
+        for seg in slam.segments:
+            _write_segment(slam, seg.id, tmp / "segments" / f"segment_{seg.id:02d}")
+    summary = slam.summary()
+    errors = getattr(slam, "errors", {})
+    if errors:
+        summary["errors"] = {str(k): v for k, v in sorted(errors.items())}
+    (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2))
+    (tmp / "frames.csv").write_text(_frames_csv(slam))
+    gt = _ground_truth(slam)
+    if gt is not None and len(gt):
+        write_tum(tmp / "groundtruth_tum.txt", gt)
+    if session:
+        from ..session import SESSION_DIR, write_session
+
+        write_session(slam, tmp / SESSION_DIR)
+        write_manifest(tmp / SESSION_DIR, SESSION_MARKER)
+    write_manifest(tmp, RUN_MARKER)
 
 
 def _write_segment(slam: "Slam", segment: int | None, folder: Path) -> None:

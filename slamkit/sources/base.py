@@ -7,6 +7,11 @@ Images are decoded on access only: memory does not grow with the length of the s
 
 from __future__ import annotations
 
+import contextlib
+import os
+import re
+import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -15,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..camera import Intrinsics
-from ..errors import ConfigError, ImageReadError
+from ..errors import ConfigError, ImageReadError, SourceError
 from ..types import Frame, Trajectory
 
 
@@ -63,8 +68,9 @@ class FrameSource:
             raise IndexError(f"frame {i} out of range for {self.name} with {n} frames")
         i = i % n
         image, path = self._read(i)
-        gray, color = to_gray_and_rgb(image)
         frame_id = int(self.frame_ids[i])
+        check_frame_size(image.shape[1], image.shape[0], path or f"{self.name}, frame {frame_id}")
+        gray, color = to_gray_and_rgb(image)
         self.camera.check_image(gray.shape, where=f"{path if path is not None else self.name}, frame {frame_id}")
         gt = None
         if self.gt_poses is not None and np.isfinite(self.gt_poses[i]).all():
@@ -89,6 +95,18 @@ class FrameSource:
                 f"gt={'yes' if self.gt_poses is not None else 'no'})")
 
 
+MIN_FRAME_SIZE = 32
+"""Frames narrower or lower than this (pixels) are refused: features need a neighbourhood to be found."""
+
+
+def check_frame_size(width: int, height: int, where: str | Path) -> None:
+    """ImageReadError naming ``where`` (a file, or a source and frame) when a frame is smaller than
+    :data:`MIN_FRAME_SIZE` in either direction (the frame is then skipped, with this reason)."""
+    if width < MIN_FRAME_SIZE or height < MIN_FRAME_SIZE:
+        raise ImageReadError(where, f"is {width}x{height} pixels; slamkit needs frames of at least "
+                                    f"{MIN_FRAME_SIZE}x{MIN_FRAME_SIZE}")
+
+
 def to_gray_and_rgb(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """uint8 grey (H, W) or BGR(A) (H, W, 3|4) -> (grey (H, W), RGB (H, W, 3)); 16-bit is scaled to 8-bit."""
     if image.dtype == np.uint16:
@@ -100,12 +118,47 @@ def to_gray_and_rgb(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+_DECODER_MESSAGE = re.compile(r"(libpng|libjpeg|libtiff|libwebp|jpeg|png|tiff|webp|corrupt|premature|"
+                              r"extraneous|marker|huffman|warning)", re.I)
+_STDERR_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def decoder_messages_named(path: Path) -> Iterator[None]:
+    """Prefix the file name to what the image libraries print on the process's stderr while ``path`` is
+    decoded ("Corrupt JPEG data: premature end of data segment", "libpng warning: ..."): libjpeg and libpng
+    write from C, so file descriptor 2 is captured for the call; lines that are not such messages (another
+    thread's output meanwhile) are passed on unchanged."""
+    with _STDERR_LOCK:
+        try:
+            saved = os.dup(2)
+        except OSError:  # no stderr: nothing to capture
+            yield
+            return
+        with tempfile.TemporaryFile() as tmp:
+            try:
+                os.dup2(tmp.fileno(), 2)
+                yield
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                tmp.seek(0)
+                text = tmp.read().decode("utf-8", "replace")
+                if text:
+                    lines = text.splitlines(keepends=True)
+                    out = "".join(f"slamkit: {path}: {ln.rstrip()}\n" if _DECODER_MESSAGE.search(ln) else ln
+                                  for ln in lines)
+                    with contextlib.suppress(OSError):
+                        os.write(2, out.encode())
+
+
 def read_image(path: Path) -> np.ndarray:
     """Decode an image file with OpenCV; :class:`ImageReadError` names the file when it fails."""
     if not path.is_file():
         raise ImageReadError(path, "file does not exist")
     try:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        with decoder_messages_named(path):
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     except cv2.error as e:  # pragma: no cover - OpenCV raises only for exotic files
         raise ImageReadError(path, f"could not be decoded ({e})") from None
     if image is None or image.size == 0:
@@ -131,6 +184,9 @@ class ImageListSource(FrameSource):
         if self.gt_poses is not None:
             self.gt_poses = np.asarray(self.gt_poses, dtype=np.float64).reshape(-1, 4, 4)
         assert len(self.paths) == len(self.timestamps) == len(self.frame_ids)
+        if self.paths and min(self.camera.width, self.camera.height) < MIN_FRAME_SIZE:  # every frame is this size
+            raise SourceError(f"{self.paths[0]}: frames of {self.name} are {self.camera.width}x{self.camera.height} "
+                              f"pixels; slamkit needs at least {MIN_FRAME_SIZE}x{MIN_FRAME_SIZE}")
 
     def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
         return read_image(self.paths[i]), self.paths[i]

@@ -213,7 +213,8 @@ def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | floa
         camera = read_camera_txt(calib, w, h)
     if camera is None:
         if sensor is None:
-            raise CalibrationError(f"{cam_dir} has no sensor.yaml: pass camera=Intrinsics(...)")
+            raise CalibrationError(f"{yaml}: missing; give the intrinsics: --camera fx,fy,cx,cy[,k1,k2,p1,p2] on "
+                                   "the command line (Python: camera=Intrinsics(...)), or restore sensor.yaml")
         try:
             camera = sensor.camera()
         except CalibrationError as e:

@@ -119,7 +119,10 @@ def open_kitti(path: str | Path, *, sequence: str | int | None = None, camera_in
         raise ConfigError(f"camera_index must be 0, 1, 2 or 3 (got {camera_index!r})")
     image_dir = require_path(folder / f"image_{camera_index}", "KITTI image folder", kind="dir")
     files = list_images(image_dir, extensions=(".png",))
-    calib_file = require_path(folder / "calib.txt", "KITTI calibration")
+    calib_file = folder / "calib.txt"
+    if not calib_file.is_file():
+        raise SourceError(f"{calib_file}: missing; a KITTI sequence folder holds calib.txt (its P0..P3 projection "
+                          f"matrices, from the odometry calibration download) next to {image_dir.name}/")
     calib = read_kitti_calib(calib_file)
     key = f"P{camera_index}"
     if key not in calib:

@@ -43,7 +43,7 @@ def detect_layout(path: str | Path) -> str:
     """The layout of an existing path: a key of :data:`OPENERS`.
 
     A file with a video extension -> ``video``; a folder with ``rgb.txt`` -> ``tum``; with ``sequences/``
-    or ``image_0``/``image_2`` and ``calib.txt`` -> ``kitti``; with ``seq-XX`` folders or
+    or ``image_0``..``image_3`` -> ``kitti``; with ``seq-XX`` folders or
     ``frame-*.color.*`` files -> ``7scenes``; with ``mav0/`` or ``cam0/data.csv`` -> ``euroc``; any other
     folder -> ``folder``. Raises SourceError for a missing path or a file that is not a video.
     """
@@ -57,9 +57,8 @@ def detect_layout(path: str | Path) -> str:
                           "; give a folder of images or a dataset folder")
     if (p / "rgb.txt").is_file():
         return "tum"
-    if (p / "sequences").is_dir() or (
-            (p / "calib.txt").is_file() and any((p / f"image_{i}").is_dir() for i in range(4))):
-        return "kitti"
+    if (p / "sequences").is_dir() or any((p / f"image_{i}").is_dir() for i in range(4)):
+        return "kitti"  # without calib.txt too: open_kitti then says it is missing
     if (p / "mav0").is_dir() or (p / "cam0" / "data.csv").is_file() or p.name == "mav0":
         return "euroc"
     children = list(p.iterdir())

@@ -96,8 +96,9 @@ def _camera(folder: Path, calibration: str | float | Intrinsics | None, width: i
         name = calibration_from_name(folder)
         if name is None:
             raise CalibrationError(
-                f"{folder}: cannot tell the TUM sensor (freiburg1/2/3) from the folder name; pass "
-                "calibration='fr1', 'fr2' or 'fr3' or an Intrinsics")
+                f"{folder}: cannot tell the TUM sensor (freiburg1/2/3) from the folder name; give the intrinsics with "
+                "--camera fx,fy,cx,cy on the command line (Python: calibration='fr1', 'fr2', 'fr3' or an "
+                "Intrinsics), or rename the folder to include freiburg1, freiburg2 or freiburg3")
         return TUM_CALIBRATIONS[name]
     return tum_calibration(calibration)
 

@@ -25,6 +25,7 @@ import pycolmap
 
 from ..errors import SourceError
 from ..io import read_tum
+from ..io.saved import check_colmap_model
 from .diff import PointsRead, isin_sorted
 from .scene import Camera
 
@@ -106,6 +107,8 @@ def state_from_run(run_dir: str | os.PathLike) -> MapState:
     sparse = run_dir / "sparse"
     if not (sparse / "images.bin").is_file() and not (sparse / "images.txt").is_file():
         raise SourceError(f"{sparse}: no COLMAP model (images.bin) — is {run_dir} a folder written by slam.save?")
+    if (sparse / "images.bin").is_file():
+        check_colmap_model(sparse)  # a damaged model would hang or abort pycolmap's reader
     rec = pycolmap.Reconstruction(str(sparse))
     ids = np.array(sorted(rec.reg_image_ids()), np.int64)
     times = None

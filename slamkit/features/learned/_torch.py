@@ -11,14 +11,16 @@ from torch import nn
 
 from ...errors import ConfigError
 from ..base import Features
+from .weights import check_weight_file, load_error_reason
 
 
 def load_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """``torch.load(path, weights_only=True)`` on the CPU; ConfigError naming the file if it is not a state dict."""
+    check_weight_file(Path(path))  # a damaged file: one line naming it, not torch's advice
     try:
         sd = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as e:  # corrupt file, pickle with code, not a torch file
-        raise ConfigError(f"{path}: not a loadable torch state dict ({type(e).__name__}: {e})") from e
+        raise ConfigError(f"{path}: not a loadable torch state dict ({load_error_reason(e)})") from e
     if not isinstance(sd, Mapping):
         raise ConfigError(f"{path}: expected a state dict (mapping of tensors), got {type(sd).__name__}")
     return dict(sd)

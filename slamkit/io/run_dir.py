@@ -1,0 +1,323 @@
+"""Run folders: how slamkit recognises its own output folders, decides whether ``--out`` may be written, and
+keeps two processes from writing one folder at once.
+
+- **Marker and manifest.** Every saved run holds ``.slamkit-run`` (JSON: format, version, a save id, and the
+  size and SHA-256 of every file the save wrote); a session folder holds ``.slamkit-session.json`` alike. The
+  manifest lets readers check a saved run before reading it (:mod:`slamkit.io.saved`), and the marker says
+  "slamkit wrote this folder": only such a folder is ever replaced without ``overwrite=True``.
+- **``check_out_dir``** runs before any frame is processed: a missing or empty folder, or a slamkit run
+  folder, is fine; a file, a folder of other files (without ``overwrite``), a folder equal to, inside or
+  containing the source, the current folder or one holding it are refused; the parent is created and a
+  test file written, so an unwritable ``--out`` fails in a second, not after the whole run.
+- **``out_dir_lock``**: an exclusive ``flock`` on ``PARENT/.NAME.lock`` for the whole run; a second writer
+  fails at once naming the folder and the other process. The OS releases it when a process dies, so a lock
+  file left by a killed process never blocks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import hashlib
+import json
+import os
+import re
+import shutil
+import tempfile
+import time
+import uuid
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+
+from ..errors import OutputError
+
+__all__ = ["RUN_MARKER", "SESSION_MARKER", "check_out_dir", "is_replaceable", "out_dir_lock", "read_manifest",
+           "remove_stale_temporaries", "source_paths", "write_manifest"]
+
+RUN_MARKER = ".slamkit-run"
+SESSION_MARKER = ".slamkit-session.json"
+MANIFEST_FORMATS = {RUN_MARKER: "slamkit-run", SESSION_MARKER: "slamkit-session-files"}
+MANIFEST_VERSION = 1
+
+RUN_ENTRIES = frozenset({
+    RUN_MARKER, "trajectory_tum.txt", "keyframes_tum.txt", "trajectory_kitti.txt", "sparse", "points.ply",
+    "summary.json", "frames.csv", "groundtruth_tum.txt", "session", "segments",
+    # written later by `slamkit eval` into the run folder
+    "report.md", "report.html", "evaluation.json", "plots", "map.html"})
+"""Top-level names a slamkit run folder may hold: anything else is the user's, and the folder is not replaced."""
+
+SESSION_ENTRY = re.compile(r"^(\.slamkit-session\.json|session\.json|state\.npz|segment_\d+)$")
+
+_PREFIX = re.compile(r"^(tum|kitti|7scenes|sevenscenes|euroc|video|folder):(.*)$", re.S)
+
+
+# ----------------------------------------------------------------------------------------------- manifest
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def write_manifest(folder: str | os.PathLike, marker: str = RUN_MARKER) -> Path:
+    """Write ``folder/marker``: the size and SHA-256 of every file below ``folder`` (paths relative, with
+    ``/``), a unique save id and the time. Called last, inside the temporary folder of an atomic save."""
+    folder = Path(folder)
+    files = {}
+    for p in sorted(folder.rglob("*")):
+        if p.is_file() and p != folder / marker:
+            files[p.relative_to(folder).as_posix()] = {"size": p.stat().st_size, "sha256": _sha256(p)}
+    meta = {"format": MANIFEST_FORMATS[marker], "version": MANIFEST_VERSION, "id": uuid.uuid4().hex,
+            "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": files}
+    path = folder / marker
+    path.write_text(json.dumps(meta, indent=1))
+    return path
+
+
+def read_manifest(folder: str | os.PathLike, marker: str = RUN_MARKER) -> dict | None:
+    """The manifest in ``folder`` (None when there is none: a folder saved before manifests existed).
+    ValueError (or OSError) with the reason when it cannot be read; :mod:`slamkit.io.saved` names the file."""
+    path = Path(folder) / marker
+    if not path.is_file():
+        return None
+    meta = json.loads(path.read_bytes().decode("utf-8"))
+    if not isinstance(meta, dict) or meta.get("format") != MANIFEST_FORMATS[marker]:
+        raise ValueError(f"not a slamkit manifest (format {meta.get('format') if isinstance(meta, dict) else meta!r})")
+    if meta.get("version") != MANIFEST_VERSION or not isinstance(meta.get("files"), dict):
+        raise ValueError(f"manifest version {meta.get('version')!r} not understood (this slamkit reads "
+                         f"{MANIFEST_VERSION})")
+    return meta
+
+
+def save_id(folder: str | os.PathLike) -> str | None:
+    """The id of the save that wrote the run in ``folder`` (None: none, or unreadable)."""
+    try:
+        return (read_manifest(folder) or {}).get("id")
+    except (OSError, ValueError):
+        return None
+
+
+# ----------------------------------------------------------------------------------------------- what may be replaced
+def _is_session_dir(path: Path) -> bool:
+    try:
+        meta = json.loads((path / "session.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("format") == "slamkit-session"
+
+
+def foreign_entries(path: Path) -> list[str]:
+    """Names in folder ``path`` that are not slamkit's (empty: the folder is empty or slamkit's own output:
+    a run folder, marked or saved before markers existed, or a session folder)."""
+    names = sorted(os.listdir(path))
+    if not names:
+        return []
+    if (path / RUN_MARKER).is_file() or ((path / "session" / "session.json").is_file()
+                                         and _is_session_dir(path / "session")):
+        return [n for n in names if n not in RUN_ENTRIES and not n.startswith(f"{RUN_MARKER}.")]
+    if (path / SESSION_MARKER).is_file() or _is_session_dir(path):
+        return [n for n in names if not SESSION_ENTRY.match(n)]
+    return names
+
+
+def is_replaceable(path: str | os.PathLike) -> bool:
+    """True when ``path`` is missing, an empty folder, or a folder slamkit wrote (nothing else in it)."""
+    path = Path(path)
+    if not path.exists():
+        return True
+    return path.is_dir() and not foreign_entries(path)
+
+
+# ----------------------------------------------------------------------------------------------- --out checks
+def source_paths(source) -> list[Path]:
+    """The files or folders a source reads, from its spec (``PATH``, ``layout:PATH``, ``folder/*.png``) or
+    from an opened source (its image paths' folders, its video file); synthetic sources read none."""
+    out: list[Path] = []
+    if isinstance(source, (str, os.PathLike)):
+        text = str(source)
+        if text == "default" or text.startswith("synthetic:"):
+            return []
+        m = _PREFIX.match(text) if not isinstance(source, Path) else None
+        p = Path(m.group(2) if m else text).expanduser()
+        if not p.exists() and any(c in p.name for c in "*?["):
+            p = p.parent
+        return [p] if p.exists() else []
+    for name in ("path", "video_path", "root", "folder"):
+        v = getattr(source, name, None)
+        if isinstance(v, (str, os.PathLike)) and Path(v).exists():
+            out.append(Path(v))
+    paths = getattr(source, "paths", None)
+    if paths is not None and len(paths):
+        out.extend({Path(paths[0]).parent, Path(paths[-1]).parent})
+    return out
+
+
+def _resolved(p: Path) -> Path:
+    return Path(os.path.realpath(p.expanduser()))
+
+
+def _overlap(out: Path, src: Path) -> str | None:
+    o, s = _resolved(out), _resolved(src)
+    if o == s:
+        return "is the source"
+    if o in s.parents:
+        return "contains the source"
+    if s.is_dir() and s in o.parents:
+        return "is inside the source"
+    return None
+
+
+def check_out_dir(out: str | os.PathLike, sources: Iterable = (), overwrite: bool = False,
+                  flag: str = "--out") -> Path:
+    """Check that the run folder ``out`` may be written, before any work (OutputError naming it otherwise).
+
+    Fine: a missing or empty folder, or a slamkit run folder (replaced atomically when the run is saved).
+    Refused: an empty path; a file; the current folder or one that holds it; a folder equal to, inside or
+    holding a source's file or folder (symlinks resolved) — these even with ``overwrite``; a non-empty
+    folder of other files unless ``overwrite``. The parent folder is created and a test file written in it,
+    so an unwritable place fails now. ``sources``: specs, paths or opened sources (:func:`source_paths`).
+    """
+    if str(out).strip() == "":
+        raise OutputError(f"{flag} '': an empty path; give the folder to write the run to")
+    out = Path(out).expanduser()
+    real = _resolved(out)
+    if real.parent == real:
+        raise OutputError(f"{flag} {out}: a file system root cannot be a run folder")
+    cwd = _resolved(Path.cwd())
+    if real == cwd or real in cwd.parents:
+        raise OutputError(f"{flag} {out}: is the current folder{'' if real == cwd else ' or holds it'}; "
+                          "a run folder is replaced as a whole — give a new folder, e.g. runs/NAME")
+    for src in source_paths_all(sources):
+        why = _overlap(out, src)
+        if why:
+            raise OutputError(f"{flag} {out}: {why} ({src}); the run folder is replaced as a whole, so it must "
+                              "be outside the input — give another folder")
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise OutputError(f"{flag} {out}: exists and is not a folder; give a folder for the run")
+        try:
+            foreign = foreign_entries(out)
+        except OSError as e:
+            raise OutputError(f"{flag} {out}: cannot be listed ({e.strerror or e})") from e
+        if foreign and not overwrite:
+            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+            raise OutputError(f"{flag} {out}: folder is not empty and is not a slamkit run ({shown}); nothing "
+                              "was written — choose another folder, or pass --overwrite (overwrite=True) to "
+                              "replace it and everything in it")
+    _check_writable(out.parent, f"{flag} {out}")
+    return out
+
+
+def source_paths_all(sources) -> list[Path]:
+    if isinstance(sources, (str, os.PathLike)) or not isinstance(sources, Iterable):
+        sources = [sources]
+    out: list[Path] = []
+    for s in sources:
+        if s is not None:
+            out.extend(source_paths(s))
+    return out
+
+
+def _check_writable(parent: Path, flag: str) -> None:
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{flag}: its folder {parent} cannot be created ({e.strerror or e})") from e
+    if not parent.is_dir():
+        raise OutputError(f"{flag}: {parent} is not a folder")
+    try:
+        fd, name = tempfile.mkstemp(dir=parent, prefix=".slamkit-write-test.", suffix=".tmp")
+    except OSError as e:
+        raise OutputError(f"{flag}: cannot write in {parent} ({e.strerror or e})") from e
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(name)
+
+
+# ----------------------------------------------------------------------------------------------- lock
+def _lock_path(out: Path) -> Path:
+    real = _resolved(out)
+    return real.parent / f".{real.name}.lock"
+
+
+@contextlib.contextmanager
+def out_dir_lock(out: str | os.PathLike, flag: str = "--out") -> Iterator[Path]:
+    """Hold an exclusive lock on run folder ``out`` (``PARENT/.NAME.lock``, ``flock``) for the block.
+
+    A second holder, in this process or another, gets OutputError at once naming the folder and the pid
+    written in the lock file. The lock file is removed when the block ends. Without ``fcntl`` (Windows) the
+    block runs unlocked.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - Windows
+        yield Path(out)
+        return
+    path = _lock_path(Path(out))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as e:
+            raise OutputError(f"{flag} {out}: lock file {path} cannot be created ({e.strerror or e})") from e
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            other = _read_pid(fd)
+            os.close(fd)
+            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise OutputError(f"{flag} {out}: cannot lock {path} ({e.strerror or e})") from e
+            who = f"process {other}" if other else "another process"
+            raise OutputError(f"{flag} {out}: {who} is writing this run folder (lock {path}); wait for it to "
+                              "finish or choose another folder") from None
+        try:  # the file may have been removed by the previous holder between our open and flock: retry
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield path
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # while still holding it, so no one locks a file that is about to vanish
+        os.close(fd)
+
+
+def _read_pid(fd: int) -> int | None:
+    try:
+        text = os.pread(fd, 32, 0).decode().strip()
+        return int(text) if text.isdigit() else None
+    except (OSError, ValueError):
+        return None
+
+
+# ----------------------------------------------------------------------------------------------- clean-up
+def remove_stale_temporaries(out: str | os.PathLike) -> list[Path]:
+    """Under the lock: remove temporary folders a killed process left beside ``out`` (``.NAME.*.tmp``), and
+    put back an old run that a crash left moved aside (``.NAME.*.old/NAME`` while ``NAME`` is missing)."""
+    out = Path(out)
+    parent, name = out.parent, out.name
+    removed: list[Path] = []
+    if not parent.is_dir():
+        return removed
+    for p in sorted(parent.glob(f".{glob_escape(name)}.*.old")):
+        moved = p / name
+        if moved.is_dir() and not out.exists():
+            with contextlib.suppress(OSError):
+                os.replace(moved, out)
+        shutil.rmtree(p, ignore_errors=True)
+        removed.append(p)
+    for p in parent.glob(f".{glob_escape(name)}.*.tmp"):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
+
+
+def glob_escape(name: str) -> str:
+    return re.sub(r"([*?\[])", r"[\1]", name)
