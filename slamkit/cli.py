@@ -19,6 +19,7 @@ from .config import PRESETS, SlamConfig
 from .errors import SlamkitError
 from .eval import evaluate
 from .eval.report import evaluate_run
+from .exporter import add_export_parser
 from .io.saved import check_run
 from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, notify, raise_interrupted
 from .io import write_tum
@@ -212,7 +213,7 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
 
 def cmd_gt(args: argparse.Namespace) -> int:
-    src = open_source(args.source)
+    src = open_source(args.source, camera=args.camera)
     gt = src.ground_truth()
     if gt is None or len(gt) == 0:
         raise SlamkitError(f"{args.source}: this source has no ground truth")
@@ -267,7 +268,10 @@ def main(argv: list[str] | None = None) -> int:
     g = sub.add_parser("gt", help="write a source's ground truth as a TUM file")
     g.add_argument("source")
     g.add_argument("out")
+    g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
+                   help="intrinsics, applied before the source is opened (e.g. a TUM layout without a freiburg name)")
     g.set_defaults(func=cmd_gt)
+    add_export_parser(sub)
     pr = sub.add_parser("presets", help="list configuration presets")
     pr.set_defaults(func=cmd_presets)
     args = p.parse_args(argv)

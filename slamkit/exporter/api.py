@@ -107,7 +107,7 @@ def export(run_dir: str | Path, out: str | Path, format: str = "colmap", frames:
     src = reopen_source(run, source)
     camera = ExportCamera.create(run.camera, bool(undistort))
     names = {f.index: file_name(run, src, f, camera) for f in selected}
-    with atomic_dir(out) as tmp:
+    with atomic_dir(out, overwrite=(out / MARKER).is_file()) as tmp:  # _check_out allowed it
         (tmp / MARKER).write_text(f"slamkit export of {run_dir.resolve()}\n")
         extra = _write_images(run, src, selected, camera, tmp / "images", names, progress)
         rec = build_model(run.model, selected, camera, names, extra)

@@ -21,12 +21,16 @@ import pycolmap
 from ..camera import Intrinsics
 from ..config import SlamConfig
 from ..errors import FormatError, SlamkitError
+from ..io.saved import check_run
 from ..io.trajectory import read_tum
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
 """Files of the COLMAP binary model a run folder must hold in ``sparse/``."""
 
 SESSION_JSON = Path("session") / "session.json"
+
+READ_PARTS = ("sparse", "trajectory_tum.txt", "frames.csv", "summary.json")
+"""The parts of a run folder the export reads (besides the optional ``session/``)."""
 
 
 class RunFolderError(SlamkitError):
@@ -148,6 +152,9 @@ def load_run(run_dir: str | Path, source_camera: Intrinsics | None = None) -> Sa
         raise RunFolderError(f"{run_dir}: run folder does not exist")
     for name in MODEL_FILES:
         _require(run_dir / "sparse" / name, "the run's COLMAP model")
+    # what the export reads is checked against the run's manifest: a damaged file is named here, never a
+    # hang inside pycolmap's reader (the session is optional: the caller may hand over the source)
+    check_run(run_dir, READ_PARTS + (("session",) if (run_dir / "session").is_dir() else ()))
     model = pycolmap.Reconstruction(str(run_dir / "sparse"))
     if model.num_reg_images() == 0:
         raise RunFolderError(f"{run_dir / 'sparse'}: the model has no registered keyframe")
