@@ -52,7 +52,8 @@ _PREFIX = re.compile(r"^(tum|kitti|7scenes|sevenscenes|euroc|video|folder):(.*)$
 
 
 # ----------------------------------------------------------------------------------------------- manifest
-def _sha256(path: Path) -> str:
+def file_sha256(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes, read in 1 MiB chunks."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
@@ -67,7 +68,7 @@ def write_manifest(folder: str | os.PathLike, marker: str = RUN_MARKER) -> Path:
     files = {}
     for p in sorted(folder.rglob("*")):
         if p.is_file() and p != folder / marker:
-            files[p.relative_to(folder).as_posix()] = {"size": p.stat().st_size, "sha256": _sha256(p)}
+            files[p.relative_to(folder).as_posix()] = {"size": p.stat().st_size, "sha256": file_sha256(p)}
     meta = {"format": MANIFEST_FORMATS[marker], "version": MANIFEST_VERSION, "id": uuid.uuid4().hex,
             "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": files}
     path = folder / marker

@@ -15,7 +15,6 @@ A failed check is a :class:`~slamkit.errors.SessionError` naming the file and wh
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -26,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import SessionError
-from .run_dir import RUN_MARKER, SESSION_MARKER, read_manifest
+from .run_dir import RUN_MARKER, SESSION_MARKER, file_sha256, read_manifest
 
 __all__ = ["check_colmap_model", "check_run", "check_session"]
 
@@ -40,14 +39,6 @@ _TRACK = np.dtype([("image_id", "<u4"), ("point2D_idx", "<u4")])
 
 
 # ----------------------------------------------------------------------------------------------- manifest
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def _manifest(folder: Path, marker: str) -> dict | None:
     try:
         return read_manifest(folder, marker)
@@ -72,7 +63,7 @@ def _check_listed(folder: Path, manifest: dict, parts: tuple[str, ...] | None) -
             raise SessionError(f"{path}: {size} bytes, but {info.get('size') if isinstance(info, dict) else '?'} "
                                "were written when the run was saved (truncated or replaced)")
         try:
-            digest = _sha256(path)
+            digest = file_sha256(path)
         except OSError as e:
             raise SessionError(f"{path}: cannot be read ({e.strerror or e})") from None
         if digest != info.get("sha256"):
