@@ -25,6 +25,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..session import SESSION_DIR, write_session
+from ..types import Trajectory
 from .atomic import atomic_dir
 from .trajectory import write_kitti, write_tum
 
@@ -51,8 +53,6 @@ def save_run(slam: "Slam", out_dir: str | Path, session: bool = True) -> Path:
         if gt is not None and len(gt):
             write_tum(tmp / "groundtruth_tum.txt", gt)
         if session:
-            from ..session import SESSION_DIR, write_session
-
             write_session(slam, tmp / SESSION_DIR)
     return out_dir
 
@@ -83,8 +83,6 @@ def _frames_csv(slam: "Slam") -> str:
 
 
 def _ground_truth(slam: "Slam"):
-    from ..types import Trajectory
-
     src = slam.source
     gt = getattr(src, "gt_poses", None)
     if gt is None:

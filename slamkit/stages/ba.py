@@ -15,9 +15,7 @@ import numpy as np
 import pycolmap
 
 from ..errors import ConfigError
-from ..map import CAMERA_ID, SlamMap
-
-_LOSSES = {"trivial": "TRIVIAL", "soft_l1": "SOFT_L1", "cauchy": "CAUCHY", "huber": "HUBER"}
+from ..map import BA_LOSSES as _LOSSES, CAMERA_ID, SlamMap, bundle_adjustment_options
 
 
 @dataclass(frozen=True)
@@ -92,23 +90,6 @@ class BundleAdjustmentResult:
     """The similarity applied by normalization (new_from_old world), or None."""
 
 
-def bundle_adjustment_options(iterations: int, loss: str = "soft_l1", refine_intrinsics: bool = False,
-                              function_tolerance: float = 1e-6, num_threads: int = 1
-                              ) -> pycolmap.BundleAdjustmentOptions:
-    """pycolmap BA options: robust loss (scale 1 px), intrinsics fixed unless asked, quiet."""
-    o = pycolmap.BundleAdjustmentOptions()
-    o.print_summary = False
-    o.refine_focal_length = refine_intrinsics
-    o.refine_principal_point = False
-    o.refine_extra_params = False
-    o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, _LOSSES[loss])
-    o.ceres.loss_function_scale = 1.0
-    o.ceres.solver_options.max_num_iterations = iterations
-    o.ceres.solver_options.function_tolerance = function_tolerance
-    o.ceres.solver_options.num_threads = num_threads
-    return o
-
-
 class BundleAdjuster:
     """Local / global bundle adjustment of a :class:`SlamMap`, then track maintenance and filtering."""
 
@@ -116,6 +97,14 @@ class BundleAdjuster:
         config.validate()
         self.config = config
         self._keyframes_at_last_global = 0
+
+    def state(self) -> dict[str, int]:
+        """What the adjuster remembers between keyframes (when the last global BA ran), for sessions."""
+        return {"keyframes_at_last_global": int(self._keyframes_at_last_global)}
+
+    def restore(self, state: dict[str, int]) -> None:
+        """Continue from :meth:`state` of another adjuster (a resumed session)."""
+        self._keyframes_at_last_global = int(state["keyframes_at_last_global"])
 
     def _options(self, iterations: int) -> pycolmap.BundleAdjustmentOptions:
         c = self.config

@@ -20,11 +20,9 @@ import pycolmap
 
 from ..camera import Intrinsics
 from ..errors import ConfigError
-from ..geometry import rotation_angle_deg
+from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
-from ..map import SlamMap, pycolmap_camera
-from .ba import bundle_adjustment_options
-from .flow import flow_score
+from ..map import SlamMap, bundle_adjustment_options, pycolmap_camera
 
 STRATEGIES = ("best_pair", "first_inliers")
 
@@ -107,14 +105,15 @@ class InitResult:
         return self.status == "initialized"
 
 
-def parallax_deg(x1: np.ndarray, x2: np.ndarray, R_2from1: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Triangulation angle (degrees) of matches x1 <-> x2 (N, 2) pixels: the angle between the viewing rays
-    of both cameras expressed in camera 1 (rotation compensated; independent of the baseline length)."""
-    Kinv = np.linalg.inv(K)
-    r1 = np.c_[x1, np.ones(len(x1))] @ Kinv.T
-    r2 = (np.c_[x2, np.ones(len(x2))] @ Kinv.T) @ R_2from1  # R^T r2, row-wise
-    cos = np.einsum("ij,ij->i", r1, r2) / (np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+@dataclass(eq=False)
+class InitializerWindow:
+    """What the initializer holds between frames: the buffered window, the frames that slid out of earlier
+    windows (kept to be posed once a map exists), and the window matches computed so far, keyed by the
+    frames' indices ((M, 2) keypoint indices)."""
+
+    frames: list[FrameFeatures]
+    history: list[FrameFeatures]
+    matches: dict[tuple[int, int], np.ndarray]
 
 
 class Initializer:
@@ -140,6 +139,15 @@ class Initializer:
         essential.max_error = config.max_error_px
         essential.random_seed = config.random_seed
         self._essential_ransac = essential
+
+    @property
+    def window(self) -> InitializerWindow:
+        """The buffered frames and window matches (live lists, for sessions: do not change them)."""
+        return InitializerWindow(self.frames, self.history, self._matches)
+
+    def restore(self, window: InitializerWindow) -> None:
+        """Continue from another initializer's :attr:`window` (a resumed session)."""
+        self.frames, self.history, self._matches = list(window.frames), list(window.history), dict(window.matches)
 
     def reset(self) -> None:
         self.frames.clear()

@@ -1,6 +1,6 @@
 """Keyframe selection (seed §3.4, with ORB-SLAM's "before tracking becomes weak" rule) and the
-degenerate-motion test (too little parallax to the last keyframe, e.g. pure rotation), and ORB-SLAM's
-keyframe culling (:func:`keyframe_redundancy`).
+degenerate-motion test (too little parallax to the last keyframe, e.g. pure rotation). Culling redundant
+keyframes is :mod:`slamkit.stages.culling`.
 
 A frame whose flow or weak tracking asks for a keyframe is still refused when the median triangulation
 angle of its tracked matches to the last keyframe (:func:`median_parallax_deg`, the relative rotation
@@ -17,8 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..geometry import rotation_angle_deg
-from .initializer import parallax_deg
+from ..geometry import parallax_deg, rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -93,17 +92,6 @@ def median_parallax_deg(ref_xy: np.ndarray, cur_xy: np.ndarray, ref_from_world: 
         return float("nan"), rotation
     angles = parallax_deg(np.asarray(ref_xy, np.float64), np.asarray(cur_xy, np.float64), R, np.asarray(K))
     return float(np.median(angles)), rotation
-
-
-def keyframe_redundancy(slam_map, image_id: int, min_observers: int) -> float:
-    """ORB-SLAM's culling measure: the fraction of the keyframe's map points that ``min_observers`` other
-    keyframes observe too (0 for a keyframe without map points)."""
-    pids = slam_map.point3D_ids(image_id)
-    pids = pids[pids >= 0].tolist()
-    if not pids:
-        return 0.0
-    point3D = slam_map.reconstruction.point3D
-    return sum(point3D(p).track.length() > min_observers for p in pids) / len(pids)
 
 
 class KeyframeSelector:

@@ -21,10 +21,11 @@ import pycolmap
 
 from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, guided_match, match_descriptors
-from ..map import SlamMap, matrix_from_rigid, rigid_from_matrix
+from ..local_map import POINT_DESCRIPTORS, LocalMap
+from ..map import matrix_from_rigid, rigid_from_matrix
+from ..results import TrackedMatches
 
 
-POINT_DESCRIPTORS = ("oldest", "newest")
 
 
 @dataclass(frozen=True)
@@ -81,71 +82,6 @@ class TrackerConfig:
                               "> 1 turns the motion-model pose off)")
 
 
-@dataclass(eq=False)
-class LocalMap:
-    """Map points near the last keyframe, as arrays for vectorised matching.
-
-    ids: (M,) int64 point ids; xyz: (M, 3) world positions; descriptors: (M, D), each point's from the
-    reference keyframe or the latest keyframe observing it ("newest"), or from the earliest ("oldest");
-    ref_ids / ref_xy: points observed by the reference (last) keyframe, sorted by id, with their
-    (undistorted) pixel positions there.
-    """
-
-    ids: np.ndarray
-    xyz: np.ndarray
-    descriptors: np.ndarray
-    binary: bool
-    ref_image_id: int
-    ref_ids: np.ndarray
-    ref_xy: np.ndarray
-    keyframe_ids: list[int]
-
-    @classmethod
-    def build(cls, slam_map: SlamMap, ref_image_id: int, num_covisible: int = 10,
-              point_descriptor: str = "newest") -> "LocalMap":
-        """The points of keyframe ``ref_image_id`` and of its ``num_covisible`` most covisible keyframes;
-        ``point_descriptor``: see :attr:`TrackerConfig.point_descriptor`."""
-        if point_descriptor not in POINT_DESCRIPTORS:
-            raise ConfigError(f"point_descriptor must be one of {', '.join(POINT_DESCRIPTORS)}")
-        kf_ids = [ref_image_id] + [i for i, _ in slam_map.covisible(ref_image_id, num_covisible)]
-        all_ids, all_desc = [], []
-        ref_ids = ref_xy = None
-        # keyframes in the order whose first observation of a point wins
-        if point_descriptor == "oldest":
-            order = sorted(kf_ids, key=lambda i: slam_map.keyframes[i].frame_index)
-        else:
-            order = sorted(kf_ids, key=lambda i: (i != ref_image_id, -slam_map.keyframes[i].frame_index))
-        for iid in order:
-            pids = slam_map.point3D_ids(iid)
-            has = pids >= 0
-            kf = slam_map.keyframes[iid]
-            all_ids.append(pids[has])
-            all_desc.append(kf.features.descriptors[has])
-            if iid == ref_image_id:
-                o = np.argsort(pids[has])
-                ref_ids, ref_xy = pids[has][o], kf.keypoints[has][o]
-        ids, first = np.unique(np.concatenate(all_ids), return_index=True)  # first: the chosen keyframe's
-        desc = np.concatenate(all_desc)
-        binary = slam_map.keyframes[ref_image_id].features.binary
-        return cls(ids, slam_map.points_xyz(ids), desc[first], binary, ref_image_id, ref_ids, ref_xy, kf_ids)
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def project(self, cam_from_world: np.ndarray, K: np.ndarray, size: tuple[int, int]
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """Project into a camera: returns (indices of points in front and inside the image, (K, 2) pixels)."""
-        Xc = self.xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-        z = Xc[:, 2]
-        front = z > 1e-6
-        uv = np.full((len(Xc), 2), -1.0)
-        uv[front] = Xc[front, :2] / z[front, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-        w, h = size
-        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        idx = np.flatnonzero(inside)
-        return idx, uv[idx]
-
-
 @dataclass(frozen=True, eq=False)
 class TrackingResult:
     """Outcome of tracking one frame.
@@ -155,7 +91,8 @@ class TrackingResult:
     motion-model matches) or "local map" (RANSAC on descriptor matches to the whole local map), "none"
     when nothing was tried; point2D_idxs / point3D_ids: (K,)
     inlier correspondences; ref_matches: inliers whose point the last keyframe observes, with
-    ``ref_xy`` / ``cur_xy`` their pixels in both (for the flow score).
+    ``ref_xy`` / ``cur_xy`` their pixels in both (for the flow score); matches: every match of the last
+    round with its inlier mask (for views).
     """
 
     status: str
@@ -168,6 +105,7 @@ class TrackingResult:
     point3D_ids: np.ndarray
     ref_xy: np.ndarray
     cur_xy: np.ndarray
+    matches: TrackedMatches = field(default_factory=TrackedMatches.empty)
 
     @property
     def tracked(self) -> bool:
@@ -183,6 +121,19 @@ def _project(cam_from_world: np.ndarray, xyz: np.ndarray, K: np.ndarray) -> tupl
     Xc = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
     z = Xc[:, 2]
     return Xc[:, :2] / np.maximum(z, 1e-9)[:, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]], z
+
+
+def _matches(local_map: LocalMap, idx: np.ndarray, pairs: np.ndarray, xy: np.ndarray, inl: np.ndarray
+             ) -> TrackedMatches:
+    """The last round's matches (pairs: (K, 2) index into ``idx`` (projected local-map points), keypoint)
+    with their inlier mask and their pixels in the reference keyframe (NaN where it does not see them)."""
+    pids = local_map.ids[idx[pairs[:, 0]]]
+    ref_xy = np.full((len(pids), 2), np.nan, np.float32)
+    if len(local_map.ref_ids) and len(pids):
+        pos = np.minimum(np.searchsorted(local_map.ref_ids, pids), len(local_map.ref_ids) - 1)
+        seen = local_map.ref_ids[pos] == pids
+        ref_xy[seen] = local_map.ref_xy[pos[seen]]
+    return TrackedMatches(np.asarray(xy, np.float32).reshape(-1, 2), pids.astype(np.int64), inl.copy(), ref_xy)
 
 
 def _lost(reason: str, method: str, num_matches: int = 0, num_inliers: int = 0) -> TrackingResult:
@@ -288,7 +239,7 @@ class Tracker:
         in_ref = (local_map.ref_ids[pos] == pids) if len(local_map.ref_ids) else np.zeros(len(pids), bool)
         return TrackingResult("tracked", f"{n_inl} inliers of {len(pairs)} local-map matches", pose, method,
                               num_matches, n_inl, kp_idx, pids, local_map.ref_xy[pos[in_ref]],
-                              frame.keypoints[kp_idx[in_ref]])
+                              frame.keypoints[kp_idx[in_ref]], _matches(local_map, idx, pairs, xy, inl))
 
     def _from_prediction(self, predicted: np.ndarray, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera,
                          K: np.ndarray) -> np.ndarray | None:
