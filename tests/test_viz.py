@@ -170,7 +170,8 @@ def run(tmp_path_factory):
         r = slam.step()
         if r.status == "tracked":
             ref, cur = fv.tracked_matches(before, slam.last_features, r.cam_from_world, map_before, slam.config)
-            drawn.append((r.matches, len(cur)))
+            lines = fv.flow_lines(r)  # what the result carries: the tracker's own matches
+            drawn.append((r.matches, len(cur), len(lines[0]), len(lines[1])))
         local_map = slam.local_map
     assert local_map is not None
     slam.finish()
@@ -236,6 +237,12 @@ def test_updates_are_incremental_during_the_run(run):
     sent = np.diff([0] + [total for _, _, total in stats])
     kf = np.array([k for k, _, _ in stats])
     assert (sent[~kf] == 0).all() and (sent[kf] > 0).all()
+
+
+def test_frame_view_draws_the_tracked_matches_the_result_carries(run):
+    drawn = np.array(run["drawn"], int)
+    assert len(drawn) >= 10
+    assert (drawn[:, 2] == drawn[:, 0]).all() and (drawn[:, 3] == drawn[:, 0]).all()  # exactly the flow score's
 
 
 def test_frame_view_derives_the_tracked_matches(run):

@@ -22,7 +22,7 @@ from ..state import FrameRecord, FrameStatus
 @dataclass(frozen=True)
 class MotionModelConfig:
     max_gap: int = 5
-    """Frames back the model looks for posed frames; older poses predict nothing."""
+    """The search for posed frames stops at the first frame more than this many frames back."""
 
     def validate(self) -> None:
         if self.max_gap < 1:
@@ -51,7 +51,7 @@ class MotionModel:
              pose_of: Callable[[FrameRecord], np.ndarray]) -> MotionPrediction:
         """Predict frame ``index`` from ``records[:index]`` posed in segment ``segment``; ``pose_of`` gives a
         record's (4, 4) cam_from_world. Stops at a frame lost outside the segment (tracking was lost
-        before it began) and ``max_gap`` frames back."""
+        before it began) and at the first frame more than ``max_gap`` frames back."""
         posed = []
         for rec in reversed(records[:index]):
             if rec.status == FrameStatus.LOST and rec.segment != segment:

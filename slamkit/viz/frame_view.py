@@ -1,11 +1,9 @@
 """What a frame looked like to the tracker: OpenCV drawings and short HTML summaries. No widgets here.
 
-- :func:`tracked_matches` re-derives, read-only, the matches of a tracked frame to the last keyframe (the
-  pipeline keeps only their count): the local map as it was before the step, projected with the frame's
-  pose, guided matching within the tracker's refinement radius, reprojection inliers, and of those the
-  points the last keyframe observes. Same functions and thresholds as :class:`~slamkit.stages.tracker.
-  Tracker`'s last stage, so the lines drawn are the matches the flow score was computed from, up to the
-  pose refinement in between.
+- :func:`flow_lines` gives a step's tracked matches to the last keyframe, as the step result carries them
+  (``StepResult.tracked``): the very matches the flow score and the keyframe decision used. Nothing is
+  re-derived. (:func:`tracked_matches`, the older re-derivation from the local map, is kept only until
+  every caller passes the step result.)
 - :func:`draw_flow` draws them like the seed's Figure 2: a line from each point's position in the last
   keyframe to its position in the current frame, a dot at the current one.
 - :func:`keyframe_matches` / :func:`draw_matches`: the keypoints two keyframes share through 3D points.
@@ -38,10 +36,19 @@ FLOW_DOT = (230, 30, 30)
 # ---------------------------------------------------------------------------------------------- matches
 
 
+def flow_lines(result: "StepResult | None") -> tuple[np.ndarray, np.ndarray]:
+    """(ref_xy (M, 2), cur_xy (M, 2)) undistorted pixels of the step's tracked matches to the last keyframe
+    (M = ``result.matches``), from the result itself; empty arrays without a result or a tracked frame."""
+    if result is None:
+        return np.empty((0, 2)), np.empty((0, 2))
+    return result.tracked.flow_lines()
+
+
 def tracked_matches(local_map: "LocalMap | None", features: FrameFeatures | None,
                     cam_from_world: np.ndarray | None, slam_map: "SlamMap | None", config: "SlamConfig"
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """(ref_xy (M, 2), cur_xy (M, 2)) undistorted pixels of the frame's tracked matches to the last keyframe.
+    """(ref_xy (M, 2), cur_xy (M, 2)) undistorted pixels of the frame's tracked matches to the last keyframe,
+    re-derived (deprecated: use :func:`flow_lines` on the step result, which holds the tracker's own).
 
     local_map: the tracker's local map *before* the step (its reference keyframe is the last keyframe);
     features: the frame's features; cam_from_world: (4, 4) the frame's pose. Empty arrays when the frame
@@ -225,5 +232,5 @@ def summary_html(numbers: dict[str, float], scene: dict[str, int] | None = None)
     return f'<div class="slamkit-summary">{text}</div>'
 
 
-__all__ = ["tracked_matches", "keyframe_matches", "draw_flow", "draw_matches", "encode_image", "placeholder",
+__all__ = ["flow_lines", "tracked_matches", "keyframe_matches", "draw_flow", "draw_matches", "encode_image", "placeholder",
            "fit_width", "step_html", "summary_numbers", "summary_html"]
