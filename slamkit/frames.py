@@ -8,6 +8,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from .camera import Intrinsics
@@ -82,3 +83,13 @@ class FrameLoader:
         colors = frame.color[ij[:, 1], ij[:, 0]]
         return FrameFeatures(frame.index, frame.frame_id, frame.timestamp, feats, kp, colors,
                              signature=image_signature(frame.gray))
+
+
+def thumbnail(frame: Frame | None, frame_index: int, width: int) -> np.ndarray | None:
+    """A ``width`` pixels wide RGB copy of ``frame`` for viewers (keyframe thumbnails), or None (width 0, or
+    ``frame`` is not frame ``frame_index``)."""
+    if width <= 0 or frame is None or frame.index != frame_index:
+        return None
+    img = frame.color
+    scale = width / img.shape[1]
+    return cv2.resize(img, (width, max(1, int(img.shape[0] * scale))), interpolation=cv2.INTER_AREA)

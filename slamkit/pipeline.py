@@ -15,15 +15,13 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Iterator
 
-import cv2
 import numpy as np
 
 from .camera import Intrinsics
 from .config import SlamConfig
 from .errors import CalibrationError, ImageReadError
 from .features import FrameFeatures, create_extractor, create_matcher
-from .frames import FrameLoader
-from .geometry import flow_score
+from .frames import FrameLoader, thumbnail
 from .io.run import save_run
 from .local_map import LocalMap
 from .map import SlamMap
@@ -34,7 +32,7 @@ from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
 from .stages.initializer import Initializer
-from .stages.keyframes import KeyframeDecision, KeyframeSelector, median_parallax_deg
+from .stages.keyframes import KeyframeDecision, KeyframeSelector
 from .stages.mapper import Mapper
 from .stages.motion import MotionModel
 from .stages.relocalizer import Relocalizer, RelocalizerConfig
@@ -194,11 +192,7 @@ class Slam:
                                           float(ts[i]) if ts is not None else float("nan"), ERROR))
         rec = st.records[num_records]
         done = self.last_result is not last_result  # the step finished; a callback raised
-        if not done:
-            if rec.rel_pose is not None and rec.keyframe_image_id < 0:
-                st.unpose(rec)
-            rec.status = ERROR
-        st.errors[rec.index] = f"{type(e).__name__}: {e}" + (" (in a callback)" if done else "")
+        st.mark_error(rec, f"{type(e).__name__}: {e}" + (" (in a callback)" if done else ""), posed=done)
         e.add_note(f"slamkit: while processing frame {rec.index} (frame id {rec.frame_id})"
                    + (" in a callback, after the frame was processed" if done else "")
                    + "; earlier frames are kept, save() works, step() continues with the next frame")
@@ -210,28 +204,26 @@ class Slam:
         timings: dict[str, float] = {}
         loaded = self.loader.next(st.cursor)
         if isinstance(loaded[0], (ImageReadError, CalibrationError)):  # a bad frame is skipped with its reason
-            return self._skip_unreadable(loaded[0], timings, t_start, cpu_start)
-        frame, ff, timings["read"], timings["features"] = loaded
-        st.cursor += 1
-        self.last_frame, self.last_features = frame, ff
-        record = FrameRecord(frame.index, frame.frame_id, frame.timestamp, LOST)
-        st.records.append(record)
-        if st.segment is None:
-            result = self._initialize(ff, record, timings)
+            result = self._skip_unreadable(loaded[0], timings, t_start)
         else:
-            result = self._track(ff, record, timings)
+            frame, ff, timings["read"], timings["features"] = loaded
+            st.cursor += 1
+            self.last_frame, self.last_features = frame, ff
+            record = FrameRecord(frame.index, frame.frame_id, frame.timestamp, LOST)
+            st.records.append(record)
+            if st.segment is None:
+                result = self._initialize(ff, record, timings)
+            else:
+                result = self._track(ff, record, timings)
         st.wall_time += time.perf_counter() - t_start
         st.cpu_time += time.process_time() - cpu_start
         st.add_timings(timings)
-        return self._deliver(result)
-
-    def _deliver(self, result: StepResult) -> StepResult:
         self.last_result = result
         for cb in self.callbacks:
             cb(self, result)
         return result
 
-    def _skip_unreadable(self, error: Exception, timings: dict, t_start: float, cpu_start: float) -> StepResult:
+    def _skip_unreadable(self, error: Exception, timings: dict, t_start: float) -> StepResult:
         """A frame the source cannot deliver: status "skipped", the source's message (file, frame) in the
         result and in ``summary()["unreadable_frames"]``; the map and the tracking state are untouched."""
         st = self.state
@@ -241,19 +233,7 @@ class Slam:
         st.cursor += 1
         st.records.append(record)
         timings["read"] = time.perf_counter() - t_start
-        result = self._result(record, SKIPPED, f"bad frame skipped: {error}", timings)
-        st.wall_time += time.perf_counter() - t_start
-        st.cpu_time += time.process_time() - cpu_start
-        st.timings["read"] = st.timings.get("read", 0.0) + timings["read"]
-        return self._deliver(result)
-
-    def _thumbnail(self, frame_index: int) -> np.ndarray | None:
-        if self.config.thumbnail_width <= 0 or self.last_frame is None or self.last_frame.index != frame_index:
-            return None
-        img = self.last_frame.color
-        scale = self.config.thumbnail_width / img.shape[1]
-        return cv2.resize(img, (self.config.thumbnail_width, max(1, int(img.shape[0] * scale))),
-                          interpolation=cv2.INTER_AREA)
+        return self._result(record, SKIPPED, f"bad frame skipped: {error}", timings)
 
     # ----------------------------------------------------------------- initialization
     def _initialize(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
@@ -358,7 +338,9 @@ class Slam:
         if seg.slam_map.num_keyframes < RETRACK_BELOW_KEYFRAMES:  # young map: track again in finish()
             seg.initial_frames.append(ff)
         t = time.perf_counter()
-        decision, flow, parallax = self._decide_keyframe(tr)
+        decision = self.selector.decide(tr.ref_xy, tr.cur_xy, seg.slam_map.cam_from_world(reference).matrix(),
+                                        tr.cam_from_world, self.camera.K, tr.num_inliers, st.points_at_last_keyframe)
+        flow, parallax = decision.flow, decision.parallax_deg
         record.degenerate = decision.degenerate
         timings["keyframe"] = time.perf_counter() - t
         message = (f"relocalized against keyframe {reference}: " if relocalized else "") + tr.reason
@@ -397,17 +379,6 @@ class Slam:
         seg.relocalizations += 1
         return res.tracking
 
-    def _decide_keyframe(self, tr: TrackingResult) -> tuple[KeyframeDecision, float, float]:
-        """The keyframe decision on the tracked matches to the last keyframe: (decision, flow score, median
-        parallax in degrees)."""
-        st = self.state
-        flow = flow_score(tr.ref_xy, tr.cur_xy, self.camera.fx, self.camera.fy)
-        parallax, rotation = median_parallax_deg(tr.ref_xy, tr.cur_xy, st.segment.slam_map.cam_from_world(
-            st.last_keyframe).matrix(), tr.cam_from_world, self.camera.K)
-        decision = self.selector.step(flow, tr.ref_matches, tr.num_inliers, st.points_at_last_keyframe,
-                                      parallax, rotation)
-        return decision, flow, parallax
-
     def _insert_keyframe(self, ff: FrameFeatures, record: FrameRecord, tr: TrackingResult,
                          decision: KeyframeDecision, timings: dict) -> tuple[bool, str, str, KeyframeDecision]:
         """Map the frame as a keyframe, bundle-adjust, cull redundant keyframes, and track from it next.
@@ -416,7 +387,7 @@ class Slam:
         seg = st.segment
         slam_map = seg.slam_map
         ff = FrameFeatures(ff.index, ff.frame_id, ff.timestamp, ff.features, ff.keypoints, ff.colors,
-                           self._thumbnail(ff.index))  # without the signature: see below
+                           thumbnail(self.last_frame, ff.index, self.config.thumbnail_width))  # no signature: below
         t = time.perf_counter()
         mres = self.mapper.step(slam_map, ff, tr.cam_from_world, tr.point2D_idxs, tr.point3D_ids, st.last_keyframe)
         timings["map"] = time.perf_counter() - t

@@ -141,11 +141,16 @@ class SlamState:
         if not seg.frames or seg.frames[-1] != rec.index:
             seg.frames.append(rec.index)
 
-    def unpose(self, rec: FrameRecord) -> None:
-        """Take a (non-keyframe) frame's pose away again (a stage failed after it was posed)."""
-        if 0 <= rec.segment < len(self.segments) and rec.index in self.segments[rec.segment].frames:
-            self.segments[rec.segment].frames.remove(rec.index)
-        rec.rel_pose, rec.ref_image_id, rec.segment = None, -1, -1
+    def mark_error(self, rec: FrameRecord, message: str, posed: bool = False) -> None:
+        """A stage raised on frame ``rec``: status "error" and no pose (a keyframe keeps its pose: it is in
+        the map), unless ``posed`` (the frame was complete; only what came after it failed)."""
+        if not posed:
+            if rec.rel_pose is not None and rec.keyframe_image_id < 0:
+                if 0 <= rec.segment < len(self.segments) and rec.index in self.segments[rec.segment].frames:
+                    self.segments[rec.segment].frames.remove(rec.index)
+                rec.rel_pose, rec.ref_image_id, rec.segment = None, -1, -1
+            rec.status = FrameStatus.ERROR
+        self.errors[rec.index] = message
 
     def reanchor(self, seg: Segment, image_id: int, anchor: int, culled_from_anchor: np.ndarray) -> None:
         """Frames posed relative to keyframe ``image_id`` (and the keyframe's own frame) are posed relative

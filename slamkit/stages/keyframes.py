@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..geometry import parallax_deg, rotation_angle_deg
+from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -100,6 +100,16 @@ class KeyframeSelector:
     def __init__(self, config: KeyframeConfig = KeyframeConfig()):
         config.validate()
         self.config = config
+
+    def decide(self, ref_xy: np.ndarray, cur_xy: np.ndarray, ref_from_world: np.ndarray,
+               cur_from_world: np.ndarray, K: np.ndarray, tracked_points: int, points_at_last_keyframe: int
+               ) -> KeyframeDecision:
+        """:meth:`step` on a tracked frame's matches to the last keyframe: ref_xy, cur_xy (M, 2) undistorted
+        pixels of the same map points in both; ref_from_world, cur_from_world (4, 4) or (3, 4) poses; K (3, 3).
+        Measures the flow score and the median parallax (both in the decision) first."""
+        flow = flow_score(ref_xy, cur_xy, K[0, 0], K[1, 1])
+        parallax, rotation = median_parallax_deg(ref_xy, cur_xy, ref_from_world, cur_from_world, K)
+        return self.step(flow, len(ref_xy), tracked_points, points_at_last_keyframe, parallax, rotation)
 
     def step(self, flow: float, tracked_matches: int, tracked_points: int, points_at_last_keyframe: int,
              parallax_deg: float = float("nan"), rotation_deg: float = float("nan")) -> KeyframeDecision:

@@ -172,40 +172,66 @@ class Tracker:
             return _lost(f"frame has only {len(frame)} keypoints", "none")
         K = camera.calibration_matrix()
         size = (camera.width, camera.height)
-        desc = frame.features.descriptors
-        initial = None
-        method = "motion"
-        num_matches = 0
+        initial, method, num_matches = None, "motion", 0
         if predicted is not None:
-            idx, uv = local_map.project(predicted, K, size)
-            if last_ids is not None and len(last_ids) >= 2 * c.min_inliers:
-                keep = np.isin(local_map.ids[idx], last_ids)
-                if keep.sum() >= 2 * c.min_inliers:
-                    idx, uv = idx[keep], uv[keep]
-            pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
-                                 c.narrow_search_radius_px, c.matching)
-            if len(pairs) < 2 * c.min_inliers and c.search_radius_px > c.narrow_search_radius_px:
-                pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
-                                     c.search_radius_px, c.matching)
-            num_matches = len(pairs)
-            if num_matches >= c.min_inliers:
-                xy, xyz = frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]]
-                initial = self._from_prediction(predicted, xy, xyz, camera, K)
-                if initial is None:
-                    method = "motion+ransac"
-                    initial = self._ransac(xy, xyz, camera)
+            initial, method, num_matches = self._with_motion_model(frame, local_map, camera, K, size, predicted,
+                                                                   last_ids)
         if initial is None:
             method = "local map"
-            pairs = match_descriptors(local_map.descriptors, desc, local_map.binary, c.matching)
+            pairs = match_descriptors(local_map.descriptors, frame.features.descriptors, local_map.binary,
+                                      c.matching)
             num_matches = max(num_matches, len(pairs))
             if len(pairs) < c.min_inliers:
                 return _lost(f"{len(pairs)} matches to the local map < {c.min_inliers}", method, num_matches)
             initial = self._ransac(frame.keypoints[pairs[:, 1]], local_map.xyz[pairs[:, 0]], camera)
             if initial is None:
                 return _lost(f"no pose from {len(pairs)} matches to the local map", method, num_matches)
-        # track the local map: guided search with the estimated pose, then motion-only refinement; again
-        # while the refinement moves the pose (a pose from few matches can sit in a rotation-translation
-        # ambiguity whose small search radius hides the points that would pull it out)
+        pose, idx, pairs, xy, inl = self._track_local_map(frame, local_map, camera, K, size, initial)
+        n_inl = int(inl.sum())
+        if n_inl < c.min_inliers:
+            return _lost(f"{n_inl} pose inliers < {c.min_inliers}", method, num_matches, n_inl)
+        kp_idx = pairs[inl, 1]
+        pids = local_map.ids[idx[pairs[inl, 0]]]
+        pos = np.searchsorted(local_map.ref_ids, pids)
+        pos = np.minimum(pos, max(len(local_map.ref_ids) - 1, 0))
+        in_ref = (local_map.ref_ids[pos] == pids) if len(local_map.ref_ids) else np.zeros(len(pids), bool)
+        return TrackingResult("tracked", f"{n_inl} inliers of {len(pairs)} local-map matches", pose, method,
+                              num_matches, n_inl, kp_idx, pids, local_map.ref_xy[pos[in_ref]],
+                              frame.keypoints[kp_idx[in_ref]], _matches(local_map, idx, pairs, xy, inl))
+
+    def _with_motion_model(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera, K: np.ndarray,
+                           size: tuple[int, int], predicted: np.ndarray, last_ids: np.ndarray | None
+                           ) -> tuple[np.ndarray | None, str, int]:
+        """Guided matching around the predicted pose (narrow radius, widened when it finds too few), then the
+        prediction refined on those matches, or RANSAC on them: (pose or None, method, matches)."""
+        c = self.config
+        desc = frame.features.descriptors
+        idx, uv = local_map.project(predicted, K, size)
+        if last_ids is not None and len(last_ids) >= 2 * c.min_inliers:
+            keep = np.isin(local_map.ids[idx], last_ids)
+            if keep.sum() >= 2 * c.min_inliers:
+                idx, uv = idx[keep], uv[keep]
+        pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                             c.narrow_search_radius_px, c.matching)
+        if len(pairs) < 2 * c.min_inliers and c.search_radius_px > c.narrow_search_radius_px:
+            pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                                 c.search_radius_px, c.matching)
+        if len(pairs) < c.min_inliers:
+            return None, "motion", len(pairs)
+        xy, xyz = frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]]
+        initial = self._from_prediction(predicted, xy, xyz, camera, K)
+        if initial is not None:
+            return initial, "motion", len(pairs)
+        return self._ransac(xy, xyz, camera), "motion+ransac", len(pairs)
+
+    def _track_local_map(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera, K: np.ndarray,
+                         size: tuple[int, int], initial: np.ndarray) -> tuple:
+        """Track the local map: guided search with the estimated pose, then motion-only refinement; again
+        while the refinement moves the pose (a pose from few matches can sit in a rotation-translation
+        ambiguity whose small search radius hides the points that would pull it out). Returns (pose, idx,
+        pairs, xy, inliers) of the best round."""
+        c = self.config
+        desc = frame.features.descriptors
         pose, best = initial, None
         for _ in range(c.local_map_rounds):
             idx, uv = local_map.project(pose, K, size)
@@ -224,22 +250,11 @@ class Tracker:
                     pose = refined
                     inl = self._inliers(pose, xy, xyz, K)
             if best is not None and inl.sum() < best[4].sum():
-                pose, idx, pairs, xy, inl = best
-                break
+                return best
             best = (pose, idx, pairs, xy, inl)
             if moved < 0.25 * c.refine_radius_px:  # the search around the refined pose would find the same
                 break
-        n_inl = int(inl.sum())
-        if n_inl < c.min_inliers:
-            return _lost(f"{n_inl} pose inliers < {c.min_inliers}", method, num_matches, n_inl)
-        kp_idx = pairs[inl, 1]
-        pids = local_map.ids[idx[pairs[inl, 0]]]
-        pos = np.searchsorted(local_map.ref_ids, pids)
-        pos = np.minimum(pos, max(len(local_map.ref_ids) - 1, 0))
-        in_ref = (local_map.ref_ids[pos] == pids) if len(local_map.ref_ids) else np.zeros(len(pids), bool)
-        return TrackingResult("tracked", f"{n_inl} inliers of {len(pairs)} local-map matches", pose, method,
-                              num_matches, n_inl, kp_idx, pids, local_map.ref_xy[pos[in_ref]],
-                              frame.keypoints[kp_idx[in_ref]], _matches(local_map, idx, pairs, xy, inl))
+        return best
 
     def _from_prediction(self, predicted: np.ndarray, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera,
                          K: np.ndarray) -> np.ndarray | None:
