@@ -195,9 +195,8 @@ XFEAT_TRACKING: dict[str, Any] = {"tracker.matching.max_l2": 0.7, "tracker.match
 """Frame tracking with XFeat's 64-d descriptors: a tighter distance threshold and no ratio test in guided
 matching (the projection radius already limits the candidates), and map points matched by their earliest
 descriptor in a local map of 50 keyframes (see ``TrackerConfig.point_descriptor``: the larger local map
-reaches further back for that descriptor). On 7-Scenes redkitchen (600 frames) these kept more map points
-tracked per frame and lowered XFeat's ATE and scale drift; see the "Feature pipelines" section of
-benchmarks/README.md for the runs."""
+reaches further back for that descriptor): they keep more map points tracked per frame (measured in the
+"Feature pipelines" section of benchmarks/README.md)."""
 
 FEATURE_PIPELINES: dict[str, dict[str, Any]] = {
     "orb": {"features": "orb", "matcher": "nn"},

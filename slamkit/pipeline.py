@@ -251,18 +251,8 @@ class Slam:
                 st.init_message = res.reason
             return self._result(record, INITIALIZING, res.reason, timings)
         # a new segment with the two initial keyframes; the rest of the window is tracked below
-        seg = st.start_segment(res.slam_map, [f for f in res.frames if f.index < res.second and f.index != res.first])
-        by_index = {f.index: f for f in res.frames}
-        for image_id, kf in sorted(res.slam_map.keyframes.items()):
-            if by_index.get(kf.frame_index) is not None and by_index[kf.frame_index].signature is not None:
-                seg.signatures[image_id] = by_index[kf.frame_index].signature
-            rec = st.records[kf.frame_index]
-            st.set_pose(rec, image_id, np.eye(4), TRACKED)
-            rec.keyframe_image_id = image_id
-        st.last_keyframe = max(res.slam_map.keyframes)
-        st.points_at_last_keyframe = res.slam_map.reconstruction.image(st.last_keyframe).num_points3D
+        st.start_segment(res.slam_map, res.frames, [f for f in res.frames if f.index < res.second and f.index != res.first])
         st.local_map = self._local_map(res.slam_map, st.last_keyframe)
-        st.consecutive_lost = 0
         posed, message = self._track_window(res, timings)
         record.status = record.status if record.rel_pose is not None else LOST
         return self._result(record, INITIALIZED, res.reason + message, timings, posed_frames=tuple(sorted(posed)),
@@ -411,8 +401,7 @@ class Slam:
         st.last_keyframe = mres.image_id
         if ff.signature is not None:  # never here (ff is the copy above): only initial keyframes have signatures
             seg.signatures[mres.image_id] = ff.signature
-        record.keyframe_image_id = mres.image_id
-        st.set_pose(record, mres.image_id, np.eye(4), TRACKED)
+        st.add_keyframe(record, mres.image_id)
         st.points_at_last_keyframe = slam_map.reconstruction.image(mres.image_id).num_points3D
         t = time.perf_counter()
         st.local_map = self._local_map(slam_map, st.last_keyframe)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -173,12 +173,28 @@ class SlamState:
                 rel[:3, 3] *= scale
 
     # ----------------------------------------------------------------- segments
-    def start_segment(self, slam_map: "SlamMap", initial_frames: list["FrameFeatures"]) -> Segment:
-        """A new segment around a freshly initialized map; it becomes the current one."""
+    def start_segment(self, slam_map: "SlamMap", frames: Sequence["FrameFeatures"],
+                      initial_frames: list["FrameFeatures"]) -> Segment:
+        """A new segment around a freshly initialized map (it becomes the current one): its keyframes' frames
+        are posed, with their signatures from ``frames``; tracking continues from the newest keyframe.
+        ``initial_frames``: the frames to track again at the end (``Slam.finish``)."""
         seg = Segment(len(self.segments), slam_map, initial_frames=initial_frames)
         self.segments.append(seg)
         self.segment = seg
+        by_index = {f.index: f for f in frames}
+        for image_id, kf in sorted(slam_map.keyframes.items()):
+            if by_index.get(kf.frame_index) is not None and by_index[kf.frame_index].signature is not None:
+                seg.signatures[image_id] = by_index[kf.frame_index].signature
+            self.add_keyframe(self.records[kf.frame_index], image_id)
+        self.last_keyframe = max(slam_map.keyframes)
+        self.points_at_last_keyframe = slam_map.reconstruction.image(self.last_keyframe).num_points3D
+        self.consecutive_lost = 0
         return seg
+
+    def add_keyframe(self, rec: FrameRecord, image_id: int) -> None:
+        """Frame ``rec`` is keyframe ``image_id`` of the current segment (its own reference)."""
+        self.set_pose(rec, image_id, np.eye(4), FrameStatus.TRACKED)
+        rec.keyframe_image_id = image_id
 
     def end_segment(self) -> None:
         """Tracking is lost for good: the next frames initialize a new segment."""

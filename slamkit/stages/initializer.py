@@ -51,17 +51,14 @@ class InitializerConfig:
     essential matrix's relative pose must agree with the homography's within this rotation angle, and
     within 10x this in translation direction; else the pair is ambiguous and rejected. With a small
     baseline a homography fits a 3D scene as well as the essential matrix does, and its decomposition can
-    give a wrong pose with apparent parallax (7-Scenes frames 28-35: rotation 2.4 degrees off, translation
-    direction 90 degrees off, and a map whose scale broke later)."""
+    give a wrong pose with apparent parallax, and a map whose scale breaks later."""
     max_reproj_error_px: float = 4.0
     min_track_angle_deg: float = 1.5
     window_features: int = 1000
     """Pair selection matches the window exhaustively on each frame's strongest keypoints, this many
     (the chosen pair is matched in full); 0 = all. The counts rank the pairs and gate them at
-    ``min_matches``. 500 would halve initialization on 7-Scenes (12-14 s -> 4-6 s; the same trajectories
-    on 7-Scenes seeds 0-5 and KITTI 07 seeds 0-2) but ranks pairs differently on harder windows: on the
-    noisy synthetic hand-held sequence, after a lost stretch, no new map started within 40 frames
-    (frame 51 with 1000)."""
+    ``min_matches``. Fewer would initialize faster but rank pairs differently on hard windows (a new map
+    started much later after a lost stretch; benchmarks/README.md, "Measurements moved from docstrings")."""
     max_history: int = 300
     """Frames that slid out of the window are kept (features only) up to this many, so they can be
     tracked once the map exists: every frame gets a pose, not only those after initialization."""

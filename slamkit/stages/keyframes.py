@@ -34,8 +34,9 @@ class KeyframeConfig:
     min_parallax_deg: float = 0.25
     """Degenerate motion: no keyframe (and so no new points) while the median parallax (triangulation
     angle, relative rotation removed) of the tracked matches to the last keyframe is below this, degrees;
-    0 disables the test. Pure rotation measures ~0.1 (keypoint noise); keyframes of real sequences are
-    taken at 0.3-1 when the camera turns (KITTI 07, 7-Scenes), where a higher value loses the map."""
+    0 disables the test. The value sits between what pure rotation measures (keypoint noise) and the
+    parallax at which real sequences take keyframes when the camera turns (figures: benchmarks/README.md,
+    "Measurements moved from docstrings")."""
     cull_redundant: float = 0.9
     """Keyframe culling (ORB-SLAM): after each new keyframe's bundle adjustment, a keyframe of its local
     window is removed from the map when at least this fraction of its map points is observed by
@@ -46,7 +47,7 @@ class KeyframeConfig:
     cull_keep_recent: int = 5
     """The most recent keyframes are never culled: new keyframes triangulate with them (``mapper.neighbors``),
     and in a turn, where each keyframe adds few points, culling them starved the map until tracking was lost
-    (KITTI 07, seed 1: 55 % posed without this, 100 % with it)."""
+    (benchmarks/README.md, "Measurements moved from docstrings")."""
 
     def validate(self) -> None:
         if not self.flow_threshold >= 0:

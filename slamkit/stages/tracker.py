@@ -49,17 +49,15 @@ class TrackerConfig:
     refinement moved the points' projections by more than a fourth of ``refine_radius_px`` (median)."""
     local_keyframes: int = 30
     """The local map: points of the last keyframe and of up to this many most covisible keyframes
-    (ORB-SLAM's local map is every keyframe sharing points with the frame, up to 80). On 7-Scenes (600
-    frames, seeds 0/1/2) 10 gave 4.51/4.08/4.44 cm, 20 3.35/3.06/3.17, 30 2.66/3.19/3.03, 50 2.75/3.13/2.95."""
+    (ORB-SLAM's local map is every keyframe sharing points with the frame, up to 80). Smaller local maps
+    lost accuracy, larger ones gained none (benchmarks/README.md, "Measurements moved from docstrings")."""
     point_descriptor: str = "newest"
     """The descriptor a local-map point is matched by: that of the reference keyframe or else of the latest
     keyframe of the local map observing it ("newest"), or of the earliest ("oldest"). The ``xfeat``
     pipelines use "oldest": XFeat's descriptors are sampled from a 1/8-resolution map, so keypoints a few
     pixels apart have near-equal descriptors, and a point matched by its newest descriptor can slide,
-    keyframe after keyframe, onto a neighbouring keypoint.
-    On 7-Scenes (600 frames) "oldest" lowered XFeat's ATE from 3.62 to 2.99 cm (means of seeds 0-3 and
-    0-7) and on KITTI 07 from 0.32 to 0.22 m; ORB got worse with it (7-Scenes 2.45-5.44 cm, lost on
-    KITTI). See "Feature pipelines" in benchmarks/README.md."""
+    keyframe after keyframe, onto a neighbouring keypoint. ORB's descriptors do not slide, and ORB tracks
+    worse with "oldest" (benchmarks/README.md, "Feature pipelines" and "Measurements moved from docstrings")."""
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     random_seed: int = 0
     """RANSAC seed (same input and seed give the same trajectory)."""
