@@ -2,8 +2,8 @@
 
 One frame (:meth:`Slam.step`): read and extract features -> initializing: ``Initializer.step`` (on success a
 new segment, the rest of its window tracked) | tracking: ``MotionModel.step`` (constant-velocity prediction)
--> ``Tracker.step`` against the local map (-> ``Relocalizer.step`` when lost) -> the keyframe decision
-(flow score, parallax, ``KeyframeSelector.step``) -> [keyframe] ``Mapper.step`` -> ``BundleAdjuster.step``
+-> ``Tracker.step`` against the local map (-> ``Relocalizer.step`` when lost) -> ``KeyframeSelector.decide``
+(flow score, parallax, tracked matches) -> [keyframe] ``Mapper.step`` -> ``BundleAdjuster.step``
 -> ``KeyframeCuller.step`` -> a new local map -> :class:`~slamkit.results.StepResult` -> callbacks.
 Everything the run has done lives in :attr:`Slam.state`; the attributes below it are thin views of it.
 """
