@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 
 from .errors import CalibrationError, ConfigError
@@ -112,8 +113,6 @@ class Intrinsics:
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
         if not self.has_distortion or len(xy) == 0:
             return xy.copy()
-        import cv2
-
         out = cv2.undistortPoints(xy.reshape(-1, 1, 2), self.K, np.asarray(self.dist), P=self.K)
         return out.reshape(-1, 2).astype(np.float64)
 

@@ -10,7 +10,7 @@ from .camera import parse_camera_values
 from .errors import ConfigError
 from .features import MatchingConfig, available_extractors, available_matchers
 from .features.learned import EXTRACTORS as LEARNED_EXTRACTORS, MATCHER_FEATURES, MATCHERS as LEARNED_MATCHERS
-from .features.learned import PIPELINES as LEARNED_PIPELINES
+from .features.learned import PIPELINES as LEARNED_PIPELINES, unavailable_reason
 from .stages.ba import BundleAdjustmentConfig
 from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
@@ -161,8 +161,6 @@ class SlamConfig:
     def unavailable_reason(self) -> str | None:
         """Why this config's extractor or matcher cannot be created here (the extra not installed: what to
         ``pip install``; a weight file missing: which, and where to put it), or None. Imports no torch."""
-        from .features.learned import unavailable_reason
-
         return unavailable_reason(self.features, self.matcher, self.weights_dir or None)
 
 
@@ -197,9 +195,8 @@ XFEAT_TRACKING: dict[str, Any] = {"tracker.matching.max_l2": 0.7, "tracker.match
 """Frame tracking with XFeat's 64-d descriptors: a tighter distance threshold and no ratio test in guided
 matching (the projection radius already limits the candidates), and map points matched by their earliest
 descriptor in a local map of 50 keyframes (see ``TrackerConfig.point_descriptor``: the larger local map
-reaches further back for that descriptor). On 7-Scenes redkitchen (600 frames) these kept more map points
-tracked per frame and lowered XFeat's ATE and scale drift; see the "Feature pipelines" section of
-benchmarks/README.md for the runs."""
+reaches further back for that descriptor): they keep more map points tracked per frame (measured in the
+"Feature pipelines" section of benchmarks/README.md)."""
 
 FEATURE_PIPELINES: dict[str, dict[str, Any]] = {
     "orb": {"features": "orb", "matcher": "nn"},
@@ -237,8 +234,6 @@ def feature_pipeline_status(weights_dir: str = "") -> dict[str, str | None]:
     """Every :data:`FEATURE_PIPELINES` name -> None when it can run here, else why not (what to ``pip
     install``, or which weight file to put where). For the notebook dropdown and benchmarks; imports no
     torch and loads no weights. ``weights_dir`` as :attr:`SlamConfig.weights_dir`."""
-    from .features.learned import unavailable_reason
-
     return {name: unavailable_reason(p["features"], p.get("matcher", "nn"), weights_dir or None)
             for name, p in FEATURE_PIPELINES.items()}
 

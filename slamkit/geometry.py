@@ -1,4 +1,5 @@
-"""Rigid-body helpers in pure numpy: quaternions (x, y, z, w) and 4x4 poses.
+"""Rigid-body helpers in pure numpy: quaternions (x, y, z, w) and 4x4 poses; two-view measures (parallax,
+flow score) shared by the stages.
 
 Quaternions are Hamilton, stored ``(qx, qy, qz, qw)`` like TUM files and pycolmap's ``Rotation3d.quat``.
 Poses are (4, 4) float64 homogeneous matrices; in slamkit they are camera-to-world unless named otherwise.
@@ -125,3 +126,25 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
     out[..., 3, 3] = 1.0
     return out
+
+
+def parallax_deg(x1: np.ndarray, x2: np.ndarray, R_2from1: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Triangulation angle (degrees) of matches x1 <-> x2 (N, 2) pixels: the angle between the viewing rays
+    of both cameras expressed in camera 1 (rotation compensated; independent of the baseline length)."""
+    Kinv = np.linalg.inv(K)
+    r1 = np.c_[x1, np.ones(len(x1))] @ Kinv.T
+    r2 = (np.c_[x2, np.ones(len(x2))] @ Kinv.T) @ R_2from1  # R^T r2, row-wise
+    cos = np.einsum("ij,ij->i", r1, r2) / (np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def flow_score(xy_ref: np.ndarray, xy_cur: np.ndarray, fx: float, fy: float) -> float:
+    """Median normalised flow of matched points (seed §3.2): median(|x1 - x2| / fx) + median(|y1 - y2| / fy).
+
+    xy_ref, xy_cur: (N, 2) pixels of the same points in the reference keyframe and the current frame.
+    Returns 0.0 when there are no matches. Unitless (roughly radians of apparent motion).
+    """
+    if len(xy_ref) == 0:
+        return 0.0
+    d = np.abs(np.asarray(xy_ref, np.float64) - np.asarray(xy_cur, np.float64))
+    return float(np.median(d[:, 0]) / fx + np.median(d[:, 1]) / fy)

@@ -10,6 +10,7 @@ does not keep (descriptors, keypoint colours, source frame index) lives in :clas
 from __future__ import annotations
 
 import copy
+import heapq
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,9 @@ from .camera import Intrinsics
 from .features import Features
 
 CAMERA_ID = 1
+
+BA_LOSSES = {"trivial": "TRIVIAL", "soft_l1": "SOFT_L1", "cauchy": "CAUCHY", "huber": "HUBER"}
+"""Robust losses of bundle adjustment by config name -> ``pycolmap.LossFunctionType`` member."""
 
 
 @dataclass(eq=False)
@@ -49,6 +53,24 @@ def matrix_from_rigid(r: pycolmap.Rigid3d) -> np.ndarray:
     out = np.eye(4)
     out[:3] = r.matrix()
     return out
+
+
+def bundle_adjustment_options(iterations: int, loss: str = "soft_l1", refine_intrinsics: bool = False,
+                              function_tolerance: float = 1e-6, num_threads: int = 1
+                              ) -> pycolmap.BundleAdjustmentOptions:
+    """pycolmap BA options: robust loss (scale 1 px), intrinsics fixed unless asked, quiet. Shared by the
+    bundle adjuster and the initializer's two-view BA."""
+    o = pycolmap.BundleAdjustmentOptions()
+    o.print_summary = False
+    o.refine_focal_length = refine_intrinsics
+    o.refine_principal_point = False
+    o.refine_extra_params = False
+    o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, BA_LOSSES[loss])
+    o.ceres.loss_function_scale = 1.0
+    o.ceres.solver_options.max_num_iterations = iterations
+    o.ceres.solver_options.function_tolerance = function_tolerance
+    o.ceres.solver_options.num_threads = num_threads
+    return o
 
 
 def pycolmap_camera(camera: Intrinsics) -> pycolmap.Camera:
@@ -230,6 +252,20 @@ class SlamMap:
         return ranked[:limit] if limit is not None else list(ranked)
 
     @property
+    def next_image_id(self) -> int:
+        """The id :meth:`add_image` gives next (ids of rejected and culled keyframes are not reused)."""
+        return self._next_image_id
+
+    @next_image_id.setter
+    def next_image_id(self, value: int) -> None:  # a session restores it
+        self._next_image_id = int(value)
+
+    @property
+    def pending_image_ids(self) -> list[int]:
+        """Images added but not registered yet (between :meth:`add_image` and :meth:`register`), ascending."""
+        return sorted(self._pending)
+
+    @property
     def num_keyframes(self) -> int:
         return len(self.keyframes)
 
@@ -262,14 +298,12 @@ class SlamMap:
         many images were dropped (0 while a keyframe candidate is pending). Image and point ids, poses,
         tracks, the keyframes' correspondences (in the same order) and the triangulator's modified points
         are kept; the ObservationManager's statistics are recounted (as after a session is loaded)."""
-        from .session import _max_point3D_id, graph_pairs  # session builds on this module
-
         old, dropped = self.reconstruction, self.num_dropped_images()
         if dropped <= 0 or self._pending:  # pending images are between add_image and register: not now
             return 0
         pairs, matches = graph_pairs(self)
         modified = sorted(self.triangulator.get_modified_points3D())
-        max_id = _max_point3D_id(old)
+        max_id = max_point3D_id(old)
         self.reconstruction = pycolmap.Reconstruction()
         self.reconstruction.add_camera_with_trivial_rig(old.camera(CAMERA_ID))
         self.graph = pycolmap.CorrespondenceGraph()
@@ -320,3 +354,60 @@ class SlamMap:
         self.triangulator = pycolmap.IncrementalTriangulator(self.graph, self.reconstruction, self.observations)
         self._observed = set(int(i) for i in self.reconstruction.images)
         self.changed()
+
+
+def max_point3D_id(rec: pycolmap.Reconstruction) -> int:
+    """The largest 3D point id the reconstruction ever gave (deleted points included), without changing it:
+    a copy is asked for its next id."""
+    probe = copy.copy(rec)
+    return int(probe.add_point3D(np.zeros(3), pycolmap.Track(), np.zeros(3, np.uint8))) - 1
+
+
+def graph_pairs(slam_map: SlamMap) -> tuple[list[tuple[int, int]], list[np.ndarray]]:
+    """The correspondence graph as image pairs (older, newer) in an order that, replayed with
+    ``SlamMap.add_matches``, gives every keypoint the same correspondence list (same order) as the original.
+
+    Pairs are grouped by the newer image (ascending: each keyframe is matched when it is inserted); within a
+    group the order is recovered from the correspondence lists of the newer image's keypoints, which list the
+    older images in insertion order. Returns (pairs, (M, 2) uint32 matches of each pair).
+    """
+    g = slam_map.graph
+    groups: dict[int, list[int]] = {}
+    for pair_id in g.num_matches_between_all_images():
+        a, b = sorted(pycolmap.pair_id_to_image_pair(pair_id))
+        groups.setdefault(int(b), []).append(int(a))
+    pairs: list[tuple[int, int]] = []
+    for b in sorted(groups):
+        older = sorted(groups[b])
+        if len(older) > 1:
+            older = _insertion_order(g, b, older, slam_map.reconstruction.image(b).num_points2D())
+        pairs.extend((a, b) for a in older)
+    matches = [np.asarray(g.extract_matches_between_images(a, b), np.uint32).reshape(-1, 2) for a, b in pairs]
+    return pairs, matches
+
+
+def _insertion_order(g: pycolmap.CorrespondenceGraph, image_id: int, older: list[int], num_points2D: int
+                     ) -> list[int]:
+    """Order of the pairs (a, image_id), a in ``older``: each keypoint's correspondence list gives a partial
+    order; a topological sort (ties by image id) completes it — unordered pairs never share a list."""
+    after: dict[int, set[int]] = {a: set() for a in older}
+    indegree = dict.fromkeys(older, 0)
+    for j in range(num_points2D):
+        seq = [c.image_id for c in g.extract_correspondences(image_id, j) if c.image_id < image_id]
+        for x, y in zip(seq, seq[1:]):
+            if x != y and y not in after[x]:
+                after[x].add(y)
+                indegree[y] += 1
+    heap = [a for a in older if indegree[a] == 0]
+    heapq.heapify(heap)
+    out = []
+    while heap:
+        a = heapq.heappop(heap)
+        out.append(a)
+        for y in after[a]:
+            indegree[y] -= 1
+            if indegree[y] == 0:
+                heapq.heappush(heap, y)
+    if len(out) != len(older):  # pragma: no cover - contradictory lists cannot come from one insertion order
+        out += [a for a in older if a not in out]
+    return out

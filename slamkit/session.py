@@ -37,10 +37,8 @@ formats: a truncated or damaged file is a SessionError naming it, never a hang i
 from __future__ import annotations
 
 import contextlib
-import copy
 import dataclasses
 import hashlib
-import heapq
 import json
 import time
 import zipfile
@@ -54,9 +52,15 @@ from .camera import Intrinsics
 from .config import SlamConfig
 from .errors import ConfigError, SessionError, SlamkitError  # noqa: F401 - SessionError lived here
 from .features import Features, FrameFeatures
-from .interrupt import deferred_interrupt  # noqa: F401 - re-exported: it lived here (pipeline imports it from here)
+from .interrupt import deferred_interrupt  # noqa: F401 - re-exported: it lived here
+from .io.atomic import atomic_dir
+from .io.run_dir import SESSION_MARKER, write_manifest
 from .io.saved import check_session
-from .map import CAMERA_ID, Keyframe, SlamMap
+from .local_map import LocalMap
+from .map import CAMERA_ID, Keyframe, SlamMap, graph_pairs, max_point3D_id
+from .map import max_point3D_id as _max_point3D_id  # noqa: F401  (its name here before it moved to map)
+from .stages.initializer import InitializerWindow
+from .state import FrameRecord, Segment, SlamState
 
 if TYPE_CHECKING:  # pragma: no cover
     from .pipeline import Slam
@@ -71,22 +75,16 @@ STRUCTURAL_FIELDS = ("features", "matcher", "frame_skip", "camera")
 """Config fields the saved state depends on: a resumed run cannot change them (the intrinsics are part of the
 saved map: its points were triangulated with them)."""
 
-_SLAM_SCALARS = ("_cursor", "last_keyframe", "_points_at_last_keyframe", "_consecutive_lost", "wall_time",
-                 "cpu_time", "finished")
-_SLAM_HANDLED = set(_SLAM_SCALARS) | {
-    "config", "source", "source_spec", "callbacks", "camera", "extractor", "tracker", "selector", "mapper",
-    "bundle_adjuster", "initializer", "indices", "records", "segments", "segment", "local_map", "_last_ids",
-    "timings", "last_frame", "last_features", "last_result", "errors"}
-"""Slam attributes saved (or rebuilt from the config) explicitly. Any other attribute holding a plain
-number, string or bool is saved too (``extra``), so a new counter in the pipeline survives a resume."""
+_STATE_SAVED_AS = {"cursor": "_cursor", "points_at_last_keyframe": "_points_at_last_keyframe",
+                   "consecutive_lost": "_consecutive_lost", "init_message": "_init_message"}
+"""Keys of :class:`~slamkit.state.SlamState` scalars in ``session.json["state"]`` that differ from the field
+names: the names they had as Slam attributes, so sessions written before the state was a value still load.
+Every other scalar field is saved under its own name, so a new counter in the state survives a resume."""
 
 
 # ----------------------------------------------------------------------------------------------- saving
 def save_session(slam: "Slam", out_dir: str | Path) -> Path:
     """Write ``slam``'s session to ``out_dir`` (replaced atomically); returns the folder."""
-    from .io.atomic import atomic_dir
-    from .io.run_dir import SESSION_MARKER, write_manifest
-
     out_dir = Path(out_dir)
     with atomic_dir(out_dir) as tmp:
         write_session(slam, tmp)
@@ -104,30 +102,44 @@ def write_session(slam: "Slam", folder: str | Path) -> None:
         "format": FORMAT, "version": VERSION, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "source": {**source_identity(slam.source), "spec": getattr(slam, "source_spec", None)},
         "config": slam.config.to_dict(),
-        "state": {k: getattr(slam, k) for k in _SLAM_SCALARS},
-        "extra": {k: v for k, v in vars(slam).items()
-                  if k not in _SLAM_HANDLED and (v is None or isinstance(v, (bool, int, float, str)))},
-        "timings": dict(slam.timings),
-        "errors": {str(k): v for k, v in getattr(slam, "errors", {}).items()},
-        "records": _records_to(slam.records, arrays),
-        "current_segment": slam.segment.id if slam.segment is not None else None,
-        "segments": [],
-        "bundle_adjuster": {"keyframes_at_last_global": int(slam.bundle_adjuster._keyframes_at_last_global)},
+        **_state_to(slam.state, arrays, folder),
+        "bundle_adjuster": slam.bundle_adjuster.state(),
+        "initializer": _window_to(slam.initializer.window, arrays),
     }
-    if slam._last_ids is not None:
-        arrays["last_ids"] = np.asarray(slam._last_ids)
-    meta["local_map"] = _local_map_to(slam.local_map, arrays) if slam.local_map is not None else None
-    init = slam.initializer
-    meta["initializer"] = {
-        "frames": _frame_features_to(init.frames, "init_frames", arrays),
-        "history": _frame_features_to(init.history, "init_history", arrays),
-        "matches": [list(k) for k in init._matches],
-    }
-    _put_list(arrays, "init_matches", list(init._matches.values()))
-    for seg in slam.segments:
-        meta["segments"].append(_write_segment(seg, folder / f"segment_{seg.id:02d}"))
     np.savez(folder / "state.npz", **arrays)
     (folder / SESSION_FILE).write_text(json.dumps(meta, indent=1, default=_json_default))
+
+
+def _state_to(state: SlamState, arrays: dict, folder: Path) -> dict:
+    """The state's fields as session.json entries (arrays into ``arrays``, segments into their folders)."""
+    meta: dict[str, Any] = {"state": {}}
+    for f in dataclasses.fields(state):
+        name, value = f.name, getattr(state, f.name)
+        if name == "records":
+            meta["records"] = _records_to(value, arrays)
+        elif name == "segments":
+            meta["segments"] = [_write_segment(seg, folder / f"segment_{seg.id:02d}") for seg in value]
+        elif name == "segment":
+            meta["current_segment"] = value.id if value is not None else None
+        elif name == "local_map":
+            meta["local_map"] = _local_map_to(value, arrays) if value is not None else None
+        elif name == "last_ids":
+            if value is not None:
+                arrays["last_ids"] = np.asarray(value)
+        elif name in ("timings", "errors"):
+            meta[name] = {str(k): v for k, v in value.items()}
+        elif value is None or isinstance(value, (bool, int, float, str)):
+            meta["state"][_STATE_SAVED_AS.get(name, name)] = value
+        else:  # a new kind of field: give it a format here, it must not be lost silently
+            raise TypeError(f"session: SlamState.{name} ({type(value).__name__}) has no session format")
+    return meta
+
+
+def _window_to(window: InitializerWindow, arrays: dict) -> dict:
+    _put_list(arrays, "init_matches", list(window.matches.values()))
+    return {"frames": _frame_features_to(window.frames, "init_frames", arrays),
+            "history": _frame_features_to(window.history, "init_history", arrays),
+            "matches": [list(k) for k in window.matches]}
 
 
 def _write_segment(seg, folder: Path) -> dict:
@@ -156,72 +168,15 @@ def _write_segment(seg, folder: Path) -> dict:
                                           "kf", arrays),
         "initial_frames": _frame_features_to(seg.initial_frames, "initial", arrays),
         "registration_order": [int(i) for i in rec.reg_frame_ids()],
-        "max_point3D_id": _max_point3D_id(rec),
+        "max_point3D_id": max_point3D_id(rec),
         "modified_points3D": sorted(int(i) for i in slam_map.triangulator.get_modified_points3D()),
-        "next_image_id": int(slam_map._next_image_id),
-        "pending": sorted(int(i) for i in slam_map._pending),
+        "next_image_id": int(slam_map.next_image_id),
+        "pending": slam_map.pending_image_ids,
         "triangulation": slam_map.triangulation.todict(),
         "camera": slam_map.camera.to_dict(),
     }
     np.savez(folder / "arrays.npz", **arrays)
     return meta
-
-
-def _max_point3D_id(rec: pycolmap.Reconstruction) -> int:
-    """The largest 3D point id the reconstruction ever gave (deleted points included), without changing it:
-    a copy is asked for its next id."""
-    probe = copy.copy(rec)
-    return int(probe.add_point3D(np.zeros(3), pycolmap.Track(), np.zeros(3, np.uint8))) - 1
-
-
-def graph_pairs(slam_map: SlamMap) -> tuple[list[tuple[int, int]], list[np.ndarray]]:
-    """The correspondence graph as image pairs (older, newer) in an order that, replayed with
-    ``SlamMap.add_matches``, gives every keypoint the same correspondence list (same order) as the original.
-
-    Pairs are grouped by the newer image (ascending: each keyframe is matched when it is inserted); within a
-    group the order is recovered from the correspondence lists of the newer image's keypoints, which list the
-    older images in insertion order. Returns (pairs, (M, 2) uint32 matches of each pair).
-    """
-    g = slam_map.graph
-    groups: dict[int, list[int]] = {}
-    for pair_id in g.num_matches_between_all_images():
-        a, b = sorted(pycolmap.pair_id_to_image_pair(pair_id))
-        groups.setdefault(int(b), []).append(int(a))
-    pairs: list[tuple[int, int]] = []
-    for b in sorted(groups):
-        older = sorted(groups[b])
-        if len(older) > 1:
-            older = _insertion_order(g, b, older, slam_map.reconstruction.image(b).num_points2D())
-        pairs.extend((a, b) for a in older)
-    matches = [np.asarray(g.extract_matches_between_images(a, b), np.uint32).reshape(-1, 2) for a, b in pairs]
-    return pairs, matches
-
-
-def _insertion_order(g: pycolmap.CorrespondenceGraph, image_id: int, older: list[int], num_points2D: int
-                     ) -> list[int]:
-    """Order of the pairs (a, image_id), a in ``older``: each keypoint's correspondence list gives a partial
-    order; a topological sort (ties by image id) completes it — unordered pairs never share a list."""
-    after: dict[int, set[int]] = {a: set() for a in older}
-    indegree = dict.fromkeys(older, 0)
-    for j in range(num_points2D):
-        seq = [c.image_id for c in g.extract_correspondences(image_id, j) if c.image_id < image_id]
-        for x, y in zip(seq, seq[1:]):
-            if x != y and y not in after[x]:
-                after[x].add(y)
-                indegree[y] += 1
-    heap = [a for a in older if indegree[a] == 0]
-    heapq.heapify(heap)
-    out = []
-    while heap:
-        a = heapq.heappop(heap)
-        out.append(a)
-        for y in after[a]:
-            indegree[y] -= 1
-            if indegree[y] == 0:
-                heapq.heappush(heap, y)
-    if len(out) != len(older):  # pragma: no cover - contradictory lists cannot come from one insertion order
-        out += [a for a in older if a not in out]
-    return out
 
 
 # ----------------------------------------------------------------------------------------------- loading
@@ -244,9 +199,8 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
         keys: the explicit way to change a parameter); a SlamConfig (or preset name) must equal the saved one.
         ``features``, ``matcher`` and ``frame_skip`` cannot change (ConfigError).
     """
-    from .pipeline import Slam
-
-    cls = cls or Slam
+    if cls is None:  # the session layer does not import the pipeline built on it
+        raise TypeError("load_session needs the Slam class (cls=); use Slam.resume(path)")
     folder = find_session(path)
     if folder is None:
         raise SessionError(f"{path}: no session found (expected {Path(path) / SESSION_DIR / SESSION_FILE}; "
@@ -339,44 +293,53 @@ def _check_source(saved: dict, source, folder: Path) -> None:
 
 
 def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
-    from .pipeline import FrameRecord, Segment
-    from .stages.tracker import LocalMap
+    slam.state = _state_from(meta, arrays, folder, slam.camera)
+    slam.bundle_adjuster.restore(meta["bundle_adjuster"])
+    imeta = meta["initializer"]
+    slam.initializer.restore(InitializerWindow(
+        _frame_features_from(imeta["frames"], "init_frames", arrays),
+        _frame_features_from(imeta["history"], "init_history", arrays),
+        {(int(a), int(b)): m for (a, b), m in zip(imeta["matches"], _get_list(arrays, "init_matches"))}))
 
-    for k, v in meta["state"].items():
-        setattr(slam, k, v)
-    for k, v in meta.get("extra", {}).items():
-        if hasattr(slam, k):
-            setattr(slam, k, v)
-    slam.timings = dict(meta["timings"])
-    if hasattr(slam, "errors"):
-        slam.errors = {int(k): v for k, v in meta.get("errors", {}).items()}
-    slam.records = _records_from(FrameRecord, meta["records"], arrays)
-    slam.segments = []
-    for smeta in meta["segments"]:
-        seg_folder = folder / f"segment_{smeta['id']:02d}"
-        with _npz(seg_folder / "arrays.npz") as seg_arrays:
-            slam_map = _restore_map(slam.camera, smeta, seg_arrays, seg_folder)
-            sigs = _get_list(seg_arrays, "signatures")
-            initial = _frame_features_from(smeta["initial_frames"], "initial", seg_arrays)
-        seg = Segment(int(smeta["id"]), slam_map, frames=list(smeta["frames"]), initial_frames=initial,
-                      signatures=dict(zip(smeta["signature_image_ids"], sigs)),
-                      relocalizations=int(smeta["relocalizations"]))
-        for k, v in smeta.get("extra", {}).items():
-            setattr(seg, k, v)
-        slam.segments.append(seg)
+
+def _state_from(meta: dict, arrays: dict, folder: Path, camera: Intrinsics) -> SlamState:
+    """The :class:`SlamState` that :func:`_state_to` wrote, field by field."""
+    saved = {**meta.get("extra", {}), **meta["state"]}  # version-1 sessions hold _init_message in "extra"
+    values: dict[str, Any] = {}
+    for f in dataclasses.fields(SlamState):
+        name = f.name
+        if name == "records":
+            values[name] = _records_from(FrameRecord, meta["records"], arrays)
+        elif name == "segments":
+            values[name] = [_read_segment(camera, smeta, folder / f"segment_{smeta['id']:02d}")
+                            for smeta in meta["segments"]]
+        elif name == "local_map":
+            values[name] = _local_map_from(meta["local_map"], arrays)
+        elif name == "last_ids":
+            values[name] = arrays.get("last_ids")
+        elif name == "timings":
+            values[name] = dict(meta["timings"])
+        elif name == "errors":
+            values[name] = {int(k): v for k, v in meta.get("errors", {}).items()}
+        elif name != "segment" and _STATE_SAVED_AS.get(name, name) in saved:
+            values[name] = saved[_STATE_SAVED_AS.get(name, name)]
+    state = SlamState(**values)
     cur = meta["current_segment"]
-    slam.segment = slam.segments[cur] if cur is not None else None
-    slam._last_ids = arrays["last_ids"] if "last_ids" in arrays else None
-    lm = meta["local_map"]
-    slam.local_map = None if lm is None else LocalMap(
-        arrays["local_map__ids"], arrays["local_map__xyz"], arrays["local_map__descriptors"], bool(lm["binary"]),
-        int(lm["ref_image_id"]), arrays["local_map__ref_ids"], arrays["local_map__ref_xy"],
-        [int(i) for i in lm["keyframe_ids"]])
-    slam.bundle_adjuster._keyframes_at_last_global = int(meta["bundle_adjuster"]["keyframes_at_last_global"])
-    init, imeta = slam.initializer, meta["initializer"]
-    init.frames = _frame_features_from(imeta["frames"], "init_frames", arrays)
-    init.history = _frame_features_from(imeta["history"], "init_history", arrays)
-    init._matches = {(int(a), int(b)): m for (a, b), m in zip(imeta["matches"], _get_list(arrays, "init_matches"))}
+    state.segment = state.segments[cur] if cur is not None else None
+    return state
+
+
+def _read_segment(camera: Intrinsics, smeta: dict, seg_folder: Path) -> Segment:
+    with _npz(seg_folder / "arrays.npz") as seg_arrays:
+        slam_map = _restore_map(camera, smeta, seg_arrays, seg_folder)
+        sigs = _get_list(seg_arrays, "signatures")
+        initial = _frame_features_from(smeta["initial_frames"], "initial", seg_arrays)
+    seg = Segment(int(smeta["id"]), slam_map, frames=list(smeta["frames"]), initial_frames=initial,
+                  signatures=dict(zip(smeta["signature_image_ids"], sigs)),
+                  relocalizations=int(smeta["relocalizations"]))
+    for k, v in smeta.get("extra", {}).items():
+        setattr(seg, k, v)
+    return seg
 
 
 def _restore_map(camera: Intrinsics, meta: dict, arrays: dict, folder: Path) -> SlamMap:
@@ -397,7 +360,7 @@ def _restore_map(camera: Intrinsics, meta: dict, arrays: dict, folder: Path) -> 
         kf = Keyframe(int(kmeta["image_id"]), int(kmeta["frame_index"]), float(kmeta["timestamp"]), keypoints,
                       features, colors, thumbnail)
         slam_map.keyframes[kf.image_id] = kf
-    slam_map._next_image_id = int(meta["next_image_id"])
+    slam_map.next_image_id = int(meta["next_image_id"])
     return slam_map
 
 
@@ -504,6 +467,14 @@ def _records_from(record_cls, meta: dict, arrays: dict) -> list:
     cols = {name: (_get_list(arrays, f"records__{name}") if values == "array" else values)
             for name, values in meta["columns"].items()}
     return [record_cls(**{name: values[i] for name, values in cols.items()}) for i in range(meta["count"])]
+
+
+def _local_map_from(meta: dict | None, arrays: dict) -> LocalMap | None:
+    if meta is None:
+        return None
+    return LocalMap(arrays["local_map__ids"], arrays["local_map__xyz"], arrays["local_map__descriptors"],
+                    bool(meta["binary"]), int(meta["ref_image_id"]), arrays["local_map__ref_ids"],
+                    arrays["local_map__ref_xy"], [int(i) for i in meta["keyframe_ids"]])
 
 
 def _local_map_to(lm, arrays: dict) -> dict:

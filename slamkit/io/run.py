@@ -28,6 +28,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..session import SESSION_DIR, write_session
+from ..types import Trajectory
 from .atomic import atomic_dir
 from .run_dir import RUN_MARKER, SESSION_MARKER, check_out_dir, out_dir_lock, write_manifest
 from .trajectory import write_kitti, write_tum
@@ -70,8 +72,6 @@ def _write_run(slam: "Slam", tmp: Path, session: bool) -> None:
     if gt is not None and len(gt):
         write_tum(tmp / "groundtruth_tum.txt", gt)
     if session:
-        from ..session import SESSION_DIR, write_session
-
         write_session(slam, tmp / SESSION_DIR)
         write_manifest(tmp / SESSION_DIR, SESSION_MARKER)
     write_manifest(tmp, RUN_MARKER)
@@ -103,8 +103,6 @@ def _frames_csv(slam: "Slam") -> str:
 
 
 def _ground_truth(slam: "Slam"):
-    from ..types import Trajectory
-
     src = slam.source
     gt = getattr(src, "gt_poses", None)
     if gt is None:

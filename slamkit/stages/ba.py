@@ -15,9 +15,7 @@ import numpy as np
 import pycolmap
 
 from ..errors import ConfigError
-from ..map import CAMERA_ID, SlamMap
-
-_LOSSES = {"trivial": "TRIVIAL", "soft_l1": "SOFT_L1", "cauchy": "CAUCHY", "huber": "HUBER"}
+from ..map import BA_LOSSES as _LOSSES, CAMERA_ID, SlamMap, bundle_adjustment_options
 
 
 @dataclass(frozen=True)
@@ -31,10 +29,8 @@ class BundleAdjustmentConfig:
     problem, so local BA would grow with the map wherever the camera revisits (0: all points variable)."""
     global_growth: float = 1.0
     """Global BA when the number of keyframes has grown by this fraction since the last global BA (1.0: at
-    8, 16, 32, 64, ... keyframes). On 7-Scenes (600 frames, seeds 0-9) 1.0 gave 2.76 cm mean ATE, 0.5
-    2.83 and 0.25 2.91 (7 of 10 seeds lower with 1.0); no periodic global BA (seeds 0-3) 2.94. KITTI 07
-    (160 frames, seeds 0-4): 0.328 m mean against 0.314 with 0.25, within the spread between seeds
-    (0.26-0.37 m)."""
+    8, 16, 32, 64, ... keyframes): the cost of global BA stays proportional to the map built; more frequent
+    global BA was no more accurate (benchmarks/README.md, "Measurements moved from docstrings")."""
     global_min_keyframes: int = 8
     """No periodic global BA before the map has this many keyframes (early maps are ill-conditioned)."""
     global_max_keyframes: int = 250
@@ -58,9 +54,8 @@ class BundleAdjustmentConfig:
     num_threads: int = 1
     """Ceres threads (-1: all cores). One thread keeps runs bit-identical: with more, Ceres adds up
     per-thread partial sums in the order the threads happen to finish, so results differ in the last bits
-    from run to run, and over hundreds of BAs the trajectory diverges (7-Scenes, 600 frames, four runs of the
-    same config with -1 on a loaded machine: ATE 2.72, 2.89, 2.93, 2.94 cm). -1 is faster on a multi-core
-    machine when determinism does not matter."""
+    from run to run, and over hundreds of BAs the trajectory diverges (benchmarks/README.md, "Measurements
+    moved from docstrings"). -1 is faster on a multi-core machine when determinism does not matter."""
 
     def validate(self) -> None:
         if self.local_window < 1:
@@ -92,23 +87,6 @@ class BundleAdjustmentResult:
     """The similarity applied by normalization (new_from_old world), or None."""
 
 
-def bundle_adjustment_options(iterations: int, loss: str = "soft_l1", refine_intrinsics: bool = False,
-                              function_tolerance: float = 1e-6, num_threads: int = 1
-                              ) -> pycolmap.BundleAdjustmentOptions:
-    """pycolmap BA options: robust loss (scale 1 px), intrinsics fixed unless asked, quiet."""
-    o = pycolmap.BundleAdjustmentOptions()
-    o.print_summary = False
-    o.refine_focal_length = refine_intrinsics
-    o.refine_principal_point = False
-    o.refine_extra_params = False
-    o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, _LOSSES[loss])
-    o.ceres.loss_function_scale = 1.0
-    o.ceres.solver_options.max_num_iterations = iterations
-    o.ceres.solver_options.function_tolerance = function_tolerance
-    o.ceres.solver_options.num_threads = num_threads
-    return o
-
-
 class BundleAdjuster:
     """Local / global bundle adjustment of a :class:`SlamMap`, then track maintenance and filtering."""
 
@@ -116,6 +94,14 @@ class BundleAdjuster:
         config.validate()
         self.config = config
         self._keyframes_at_last_global = 0
+
+    def state(self) -> dict[str, int]:
+        """What the adjuster remembers between keyframes (when the last global BA ran), for sessions."""
+        return {"keyframes_at_last_global": int(self._keyframes_at_last_global)}
+
+    def restore(self, state: dict[str, int]) -> None:
+        """Continue from :meth:`state` of another adjuster (a resumed session)."""
+        self._keyframes_at_last_global = int(state["keyframes_at_last_global"])
 
     def _options(self, iterations: int) -> pycolmap.BundleAdjustmentOptions:
         c = self.config

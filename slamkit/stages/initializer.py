@@ -20,11 +20,9 @@ import pycolmap
 
 from ..camera import Intrinsics
 from ..errors import ConfigError
-from ..geometry import rotation_angle_deg
+from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
-from ..map import SlamMap, pycolmap_camera
-from .ba import bundle_adjustment_options
-from .flow import flow_score
+from ..map import SlamMap, bundle_adjustment_options, pycolmap_camera
 
 STRATEGIES = ("best_pair", "first_inliers")
 
@@ -53,17 +51,14 @@ class InitializerConfig:
     essential matrix's relative pose must agree with the homography's within this rotation angle, and
     within 10x this in translation direction; else the pair is ambiguous and rejected. With a small
     baseline a homography fits a 3D scene as well as the essential matrix does, and its decomposition can
-    give a wrong pose with apparent parallax (7-Scenes frames 28-35: rotation 2.4 degrees off, translation
-    direction 90 degrees off, and a map whose scale broke later)."""
+    give a wrong pose with apparent parallax, and a map whose scale breaks later."""
     max_reproj_error_px: float = 4.0
     min_track_angle_deg: float = 1.5
     window_features: int = 1000
     """Pair selection matches the window exhaustively on each frame's strongest keypoints, this many
     (the chosen pair is matched in full); 0 = all. The counts rank the pairs and gate them at
-    ``min_matches``. 500 would halve initialization on 7-Scenes (12-14 s -> 4-6 s; the same trajectories
-    on 7-Scenes seeds 0-5 and KITTI 07 seeds 0-2) but ranks pairs differently on harder windows: on the
-    noisy synthetic hand-held sequence, after a lost stretch, no new map started within 40 frames
-    (frame 51 with 1000)."""
+    ``min_matches``. Fewer would initialize faster but rank pairs differently on hard windows (a new map
+    started much later after a lost stretch; benchmarks/README.md, "Measurements moved from docstrings")."""
     max_history: int = 300
     """Frames that slid out of the window are kept (features only) up to this many, so they can be
     tracked once the map exists: every frame gets a pose, not only those after initialization."""
@@ -107,14 +102,15 @@ class InitResult:
         return self.status == "initialized"
 
 
-def parallax_deg(x1: np.ndarray, x2: np.ndarray, R_2from1: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Triangulation angle (degrees) of matches x1 <-> x2 (N, 2) pixels: the angle between the viewing rays
-    of both cameras expressed in camera 1 (rotation compensated; independent of the baseline length)."""
-    Kinv = np.linalg.inv(K)
-    r1 = np.c_[x1, np.ones(len(x1))] @ Kinv.T
-    r2 = (np.c_[x2, np.ones(len(x2))] @ Kinv.T) @ R_2from1  # R^T r2, row-wise
-    cos = np.einsum("ij,ij->i", r1, r2) / (np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+@dataclass(eq=False)
+class InitializerWindow:
+    """What the initializer holds between frames: the buffered window, the frames that slid out of earlier
+    windows (kept to be posed once a map exists), and the window matches computed so far, keyed by the
+    frames' indices ((M, 2) keypoint indices)."""
+
+    frames: list[FrameFeatures]
+    history: list[FrameFeatures]
+    matches: dict[tuple[int, int], np.ndarray]
 
 
 class Initializer:
@@ -140,6 +136,15 @@ class Initializer:
         essential.max_error = config.max_error_px
         essential.random_seed = config.random_seed
         self._essential_ransac = essential
+
+    @property
+    def window(self) -> InitializerWindow:
+        """The buffered frames and window matches (live lists, for sessions: do not change them)."""
+        return InitializerWindow(self.frames, self.history, self._matches)
+
+    def restore(self, window: InitializerWindow) -> None:
+        """Continue from another initializer's :attr:`window` (a resumed session)."""
+        self.frames, self.history, self._matches = list(window.frames), list(window.history), dict(window.matches)
 
     def reset(self) -> None:
         self.frames.clear()

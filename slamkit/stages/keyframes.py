@@ -1,6 +1,6 @@
 """Keyframe selection (seed §3.4, with ORB-SLAM's "before tracking becomes weak" rule) and the
-degenerate-motion test (too little parallax to the last keyframe, e.g. pure rotation), and ORB-SLAM's
-keyframe culling (:func:`keyframe_redundancy`).
+degenerate-motion test (too little parallax to the last keyframe, e.g. pure rotation). Culling redundant
+keyframes is :mod:`slamkit.stages.culling`.
 
 A frame whose flow or weak tracking asks for a keyframe is still refused when the median triangulation
 angle of its tracked matches to the last keyframe (:func:`median_parallax_deg`, the relative rotation
@@ -17,8 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..geometry import rotation_angle_deg
-from .initializer import parallax_deg
+from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 
 
 @dataclass(frozen=True)
@@ -35,8 +34,9 @@ class KeyframeConfig:
     min_parallax_deg: float = 0.25
     """Degenerate motion: no keyframe (and so no new points) while the median parallax (triangulation
     angle, relative rotation removed) of the tracked matches to the last keyframe is below this, degrees;
-    0 disables the test. Pure rotation measures ~0.1 (keypoint noise); keyframes of real sequences are
-    taken at 0.3-1 when the camera turns (KITTI 07, 7-Scenes), where a higher value loses the map."""
+    0 disables the test. The value sits between what pure rotation measures (keypoint noise) and the
+    parallax at which real sequences take keyframes when the camera turns (figures: benchmarks/README.md,
+    "Measurements moved from docstrings")."""
     cull_redundant: float = 0.9
     """Keyframe culling (ORB-SLAM): after each new keyframe's bundle adjustment, a keyframe of its local
     window is removed from the map when at least this fraction of its map points is observed by
@@ -47,7 +47,7 @@ class KeyframeConfig:
     cull_keep_recent: int = 5
     """The most recent keyframes are never culled: new keyframes triangulate with them (``mapper.neighbors``),
     and in a turn, where each keyframe adds few points, culling them starved the map until tracking was lost
-    (KITTI 07, seed 1: 55 % posed without this, 100 % with it)."""
+    (benchmarks/README.md, "Measurements moved from docstrings")."""
 
     def validate(self) -> None:
         if not self.flow_threshold >= 0:
@@ -95,23 +95,22 @@ def median_parallax_deg(ref_xy: np.ndarray, cur_xy: np.ndarray, ref_from_world: 
     return float(np.median(angles)), rotation
 
 
-def keyframe_redundancy(slam_map, image_id: int, min_observers: int) -> float:
-    """ORB-SLAM's culling measure: the fraction of the keyframe's map points that ``min_observers`` other
-    keyframes observe too (0 for a keyframe without map points)."""
-    pids = slam_map.point3D_ids(image_id)
-    pids = pids[pids >= 0].tolist()
-    if not pids:
-        return 0.0
-    point3D = slam_map.reconstruction.point3D
-    return sum(point3D(p).track.length() > min_observers for p in pids) / len(pids)
-
-
 class KeyframeSelector:
     """Decides whether a tracked frame becomes a keyframe, and says why (or why not)."""
 
     def __init__(self, config: KeyframeConfig = KeyframeConfig()):
         config.validate()
         self.config = config
+
+    def decide(self, ref_xy: np.ndarray, cur_xy: np.ndarray, ref_from_world: np.ndarray,
+               cur_from_world: np.ndarray, K: np.ndarray, tracked_points: int, points_at_last_keyframe: int
+               ) -> KeyframeDecision:
+        """:meth:`step` on a tracked frame's matches to the last keyframe: ref_xy, cur_xy (M, 2) undistorted
+        pixels of the same map points in both; ref_from_world, cur_from_world (4, 4) or (3, 4) poses; K (3, 3).
+        Measures the flow score and the median parallax (both in the decision) first."""
+        flow = flow_score(ref_xy, cur_xy, K[0, 0], K[1, 1])
+        parallax, rotation = median_parallax_deg(ref_xy, cur_xy, ref_from_world, cur_from_world, K)
+        return self.step(flow, len(ref_xy), tracked_points, points_at_last_keyframe, parallax, rotation)
 
     def step(self, flow: float, tracked_matches: int, tracked_points: int, points_at_last_keyframe: int,
              parallax_deg: float = float("nan"), rotation_deg: float = float("nan")) -> KeyframeDecision:

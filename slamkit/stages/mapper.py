@@ -28,7 +28,7 @@ class MapperConfig:
     matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.8, mutual=True))
     compact_dropped: int = 100
     """Images no longer keyframes (culled or rejected) stay in pycolmap's Reconstruction and correspondence
-    graph (~0.3 MB each with 2,000 keypoints); once there are this many, and at least as many as keyframes,
+    graph with all their keypoints and matches; once there are this many, and at least as many as keyframes,
     the map is rebuilt without them (``SlamMap.compact``; amortized O(1) per keyframe). 0: never."""
 
     def validate(self) -> None:

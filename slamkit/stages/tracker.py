@@ -21,10 +21,11 @@ import pycolmap
 
 from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, guided_match, match_descriptors
-from ..map import SlamMap, matrix_from_rigid, rigid_from_matrix
+from ..local_map import POINT_DESCRIPTORS, LocalMap
+from ..map import matrix_from_rigid, rigid_from_matrix
+from ..results import TrackedMatches
 
 
-POINT_DESCRIPTORS = ("oldest", "newest")
 
 
 @dataclass(frozen=True)
@@ -48,17 +49,15 @@ class TrackerConfig:
     refinement moved the points' projections by more than a fourth of ``refine_radius_px`` (median)."""
     local_keyframes: int = 30
     """The local map: points of the last keyframe and of up to this many most covisible keyframes
-    (ORB-SLAM's local map is every keyframe sharing points with the frame, up to 80). On 7-Scenes (600
-    frames, seeds 0/1/2) 10 gave 4.51/4.08/4.44 cm, 20 3.35/3.06/3.17, 30 2.66/3.19/3.03, 50 2.75/3.13/2.95."""
+    (ORB-SLAM's local map is every keyframe sharing points with the frame, up to 80). Smaller local maps
+    lost accuracy, larger ones gained none (benchmarks/README.md, "Measurements moved from docstrings")."""
     point_descriptor: str = "newest"
     """The descriptor a local-map point is matched by: that of the reference keyframe or else of the latest
     keyframe of the local map observing it ("newest"), or of the earliest ("oldest"). The ``xfeat``
     pipelines use "oldest": XFeat's descriptors are sampled from a 1/8-resolution map, so keypoints a few
     pixels apart have near-equal descriptors, and a point matched by its newest descriptor can slide,
-    keyframe after keyframe, onto a neighbouring keypoint.
-    On 7-Scenes (600 frames) "oldest" lowered XFeat's ATE from 3.62 to 2.99 cm (means of seeds 0-3 and
-    0-7) and on KITTI 07 from 0.32 to 0.22 m; ORB got worse with it (7-Scenes 2.45-5.44 cm, lost on
-    KITTI). See "Feature pipelines" in benchmarks/README.md."""
+    keyframe after keyframe, onto a neighbouring keypoint. ORB's descriptors do not slide, and ORB tracks
+    worse with "oldest" (benchmarks/README.md, "Feature pipelines" and "Measurements moved from docstrings")."""
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     random_seed: int = 0
     """RANSAC seed (same input and seed give the same trajectory)."""
@@ -81,71 +80,6 @@ class TrackerConfig:
                               "> 1 turns the motion-model pose off)")
 
 
-@dataclass(eq=False)
-class LocalMap:
-    """Map points near the last keyframe, as arrays for vectorised matching.
-
-    ids: (M,) int64 point ids; xyz: (M, 3) world positions; descriptors: (M, D), each point's from the
-    reference keyframe or the latest keyframe observing it ("newest"), or from the earliest ("oldest");
-    ref_ids / ref_xy: points observed by the reference (last) keyframe, sorted by id, with their
-    (undistorted) pixel positions there.
-    """
-
-    ids: np.ndarray
-    xyz: np.ndarray
-    descriptors: np.ndarray
-    binary: bool
-    ref_image_id: int
-    ref_ids: np.ndarray
-    ref_xy: np.ndarray
-    keyframe_ids: list[int]
-
-    @classmethod
-    def build(cls, slam_map: SlamMap, ref_image_id: int, num_covisible: int = 10,
-              point_descriptor: str = "newest") -> "LocalMap":
-        """The points of keyframe ``ref_image_id`` and of its ``num_covisible`` most covisible keyframes;
-        ``point_descriptor``: see :attr:`TrackerConfig.point_descriptor`."""
-        if point_descriptor not in POINT_DESCRIPTORS:
-            raise ConfigError(f"point_descriptor must be one of {', '.join(POINT_DESCRIPTORS)}")
-        kf_ids = [ref_image_id] + [i for i, _ in slam_map.covisible(ref_image_id, num_covisible)]
-        all_ids, all_desc = [], []
-        ref_ids = ref_xy = None
-        # keyframes in the order whose first observation of a point wins
-        if point_descriptor == "oldest":
-            order = sorted(kf_ids, key=lambda i: slam_map.keyframes[i].frame_index)
-        else:
-            order = sorted(kf_ids, key=lambda i: (i != ref_image_id, -slam_map.keyframes[i].frame_index))
-        for iid in order:
-            pids = slam_map.point3D_ids(iid)
-            has = pids >= 0
-            kf = slam_map.keyframes[iid]
-            all_ids.append(pids[has])
-            all_desc.append(kf.features.descriptors[has])
-            if iid == ref_image_id:
-                o = np.argsort(pids[has])
-                ref_ids, ref_xy = pids[has][o], kf.keypoints[has][o]
-        ids, first = np.unique(np.concatenate(all_ids), return_index=True)  # first: the chosen keyframe's
-        desc = np.concatenate(all_desc)
-        binary = slam_map.keyframes[ref_image_id].features.binary
-        return cls(ids, slam_map.points_xyz(ids), desc[first], binary, ref_image_id, ref_ids, ref_xy, kf_ids)
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def project(self, cam_from_world: np.ndarray, K: np.ndarray, size: tuple[int, int]
-                ) -> tuple[np.ndarray, np.ndarray]:
-        """Project into a camera: returns (indices of points in front and inside the image, (K, 2) pixels)."""
-        Xc = self.xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-        z = Xc[:, 2]
-        front = z > 1e-6
-        uv = np.full((len(Xc), 2), -1.0)
-        uv[front] = Xc[front, :2] / z[front, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-        w, h = size
-        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        idx = np.flatnonzero(inside)
-        return idx, uv[idx]
-
-
 @dataclass(frozen=True, eq=False)
 class TrackingResult:
     """Outcome of tracking one frame.
@@ -155,7 +89,8 @@ class TrackingResult:
     motion-model matches) or "local map" (RANSAC on descriptor matches to the whole local map), "none"
     when nothing was tried; point2D_idxs / point3D_ids: (K,)
     inlier correspondences; ref_matches: inliers whose point the last keyframe observes, with
-    ``ref_xy`` / ``cur_xy`` their pixels in both (for the flow score).
+    ``ref_xy`` / ``cur_xy`` their pixels in both (for the flow score); matches: every match of the last
+    round with its inlier mask (for views).
     """
 
     status: str
@@ -168,6 +103,7 @@ class TrackingResult:
     point3D_ids: np.ndarray
     ref_xy: np.ndarray
     cur_xy: np.ndarray
+    matches: TrackedMatches = field(default_factory=TrackedMatches.empty)
 
     @property
     def tracked(self) -> bool:
@@ -183,6 +119,19 @@ def _project(cam_from_world: np.ndarray, xyz: np.ndarray, K: np.ndarray) -> tupl
     Xc = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
     z = Xc[:, 2]
     return Xc[:, :2] / np.maximum(z, 1e-9)[:, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]], z
+
+
+def _matches(local_map: LocalMap, idx: np.ndarray, pairs: np.ndarray, xy: np.ndarray, inl: np.ndarray
+             ) -> TrackedMatches:
+    """The last round's matches (pairs: (K, 2) index into ``idx`` (projected local-map points), keypoint)
+    with their inlier mask and their pixels in the reference keyframe (NaN where it does not see them)."""
+    pids = local_map.ids[idx[pairs[:, 0]]]
+    ref_xy = np.full((len(pids), 2), np.nan, np.float32)
+    if len(local_map.ref_ids) and len(pids):
+        pos = np.minimum(np.searchsorted(local_map.ref_ids, pids), len(local_map.ref_ids) - 1)
+        seen = local_map.ref_ids[pos] == pids
+        ref_xy[seen] = local_map.ref_xy[pos[seen]]
+    return TrackedMatches(np.asarray(xy, np.float32).reshape(-1, 2), pids.astype(np.int64), inl.copy(), ref_xy)
 
 
 def _lost(reason: str, method: str, num_matches: int = 0, num_inliers: int = 0) -> TrackingResult:
@@ -221,40 +170,66 @@ class Tracker:
             return _lost(f"frame has only {len(frame)} keypoints", "none")
         K = camera.calibration_matrix()
         size = (camera.width, camera.height)
-        desc = frame.features.descriptors
-        initial = None
-        method = "motion"
-        num_matches = 0
+        initial, method, num_matches = None, "motion", 0
         if predicted is not None:
-            idx, uv = local_map.project(predicted, K, size)
-            if last_ids is not None and len(last_ids) >= 2 * c.min_inliers:
-                keep = np.isin(local_map.ids[idx], last_ids)
-                if keep.sum() >= 2 * c.min_inliers:
-                    idx, uv = idx[keep], uv[keep]
-            pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
-                                 c.narrow_search_radius_px, c.matching)
-            if len(pairs) < 2 * c.min_inliers and c.search_radius_px > c.narrow_search_radius_px:
-                pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
-                                     c.search_radius_px, c.matching)
-            num_matches = len(pairs)
-            if num_matches >= c.min_inliers:
-                xy, xyz = frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]]
-                initial = self._from_prediction(predicted, xy, xyz, camera, K)
-                if initial is None:
-                    method = "motion+ransac"
-                    initial = self._ransac(xy, xyz, camera)
+            initial, method, num_matches = self._with_motion_model(frame, local_map, camera, K, size, predicted,
+                                                                   last_ids)
         if initial is None:
             method = "local map"
-            pairs = match_descriptors(local_map.descriptors, desc, local_map.binary, c.matching)
+            pairs = match_descriptors(local_map.descriptors, frame.features.descriptors, local_map.binary,
+                                      c.matching)
             num_matches = max(num_matches, len(pairs))
             if len(pairs) < c.min_inliers:
                 return _lost(f"{len(pairs)} matches to the local map < {c.min_inliers}", method, num_matches)
             initial = self._ransac(frame.keypoints[pairs[:, 1]], local_map.xyz[pairs[:, 0]], camera)
             if initial is None:
                 return _lost(f"no pose from {len(pairs)} matches to the local map", method, num_matches)
-        # track the local map: guided search with the estimated pose, then motion-only refinement; again
-        # while the refinement moves the pose (a pose from few matches can sit in a rotation-translation
-        # ambiguity whose small search radius hides the points that would pull it out)
+        pose, idx, pairs, xy, inl = self._track_local_map(frame, local_map, camera, K, size, initial)
+        n_inl = int(inl.sum())
+        if n_inl < c.min_inliers:
+            return _lost(f"{n_inl} pose inliers < {c.min_inliers}", method, num_matches, n_inl)
+        kp_idx = pairs[inl, 1]
+        pids = local_map.ids[idx[pairs[inl, 0]]]
+        pos = np.searchsorted(local_map.ref_ids, pids)
+        pos = np.minimum(pos, max(len(local_map.ref_ids) - 1, 0))
+        in_ref = (local_map.ref_ids[pos] == pids) if len(local_map.ref_ids) else np.zeros(len(pids), bool)
+        return TrackingResult("tracked", f"{n_inl} inliers of {len(pairs)} local-map matches", pose, method,
+                              num_matches, n_inl, kp_idx, pids, local_map.ref_xy[pos[in_ref]],
+                              frame.keypoints[kp_idx[in_ref]], _matches(local_map, idx, pairs, xy, inl))
+
+    def _with_motion_model(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera, K: np.ndarray,
+                           size: tuple[int, int], predicted: np.ndarray, last_ids: np.ndarray | None
+                           ) -> tuple[np.ndarray | None, str, int]:
+        """Guided matching around the predicted pose (narrow radius, widened when it finds too few), then the
+        prediction refined on those matches, or RANSAC on them: (pose or None, method, matches)."""
+        c = self.config
+        desc = frame.features.descriptors
+        idx, uv = local_map.project(predicted, K, size)
+        if last_ids is not None and len(last_ids) >= 2 * c.min_inliers:
+            keep = np.isin(local_map.ids[idx], last_ids)
+            if keep.sum() >= 2 * c.min_inliers:
+                idx, uv = idx[keep], uv[keep]
+        pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                             c.narrow_search_radius_px, c.matching)
+        if len(pairs) < 2 * c.min_inliers and c.search_radius_px > c.narrow_search_radius_px:
+            pairs = guided_match(uv, local_map.descriptors[idx], frame.keypoints, desc, local_map.binary,
+                                 c.search_radius_px, c.matching)
+        if len(pairs) < c.min_inliers:
+            return None, "motion", len(pairs)
+        xy, xyz = frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]]
+        initial = self._from_prediction(predicted, xy, xyz, camera, K)
+        if initial is not None:
+            return initial, "motion", len(pairs)
+        return self._ransac(xy, xyz, camera), "motion+ransac", len(pairs)
+
+    def _track_local_map(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera, K: np.ndarray,
+                         size: tuple[int, int], initial: np.ndarray) -> tuple:
+        """Track the local map: guided search with the estimated pose, then motion-only refinement; again
+        while the refinement moves the pose (a pose from few matches can sit in a rotation-translation
+        ambiguity whose small search radius hides the points that would pull it out). Returns (pose, idx,
+        pairs, xy, inliers) of the best round."""
+        c = self.config
+        desc = frame.features.descriptors
         pose, best = initial, None
         for _ in range(c.local_map_rounds):
             idx, uv = local_map.project(pose, K, size)
@@ -273,22 +248,11 @@ class Tracker:
                     pose = refined
                     inl = self._inliers(pose, xy, xyz, K)
             if best is not None and inl.sum() < best[4].sum():
-                pose, idx, pairs, xy, inl = best
-                break
+                return best
             best = (pose, idx, pairs, xy, inl)
             if moved < 0.25 * c.refine_radius_px:  # the search around the refined pose would find the same
                 break
-        n_inl = int(inl.sum())
-        if n_inl < c.min_inliers:
-            return _lost(f"{n_inl} pose inliers < {c.min_inliers}", method, num_matches, n_inl)
-        kp_idx = pairs[inl, 1]
-        pids = local_map.ids[idx[pairs[inl, 0]]]
-        pos = np.searchsorted(local_map.ref_ids, pids)
-        pos = np.minimum(pos, max(len(local_map.ref_ids) - 1, 0))
-        in_ref = (local_map.ref_ids[pos] == pids) if len(local_map.ref_ids) else np.zeros(len(pids), bool)
-        return TrackingResult("tracked", f"{n_inl} inliers of {len(pairs)} local-map matches", pose, method,
-                              num_matches, n_inl, kp_idx, pids, local_map.ref_xy[pos[in_ref]],
-                              frame.keypoints[kp_idx[in_ref]])
+        return best
 
     def _from_prediction(self, predicted: np.ndarray, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera,
                          K: np.ndarray) -> np.ndarray | None:

@@ -196,15 +196,9 @@ class SlamApp(AppWidgets):
         if self.slam.done:
             self._finish()
             return None
-        local_map_before = self.slam.local_map
-        slam_map_before = self.slam.slam_map
         result = self.slam.step()
         self.results.append(result)
-        if result.status == "tracked":
-            self.flow_pairs = fv.tracked_matches(local_map_before, self.slam.last_features, result.cam_from_world,
-                                                 slam_map_before, self.slam.config)
-        else:
-            self.flow_pairs = (np.empty((0, 2)), np.empty((0, 2)))
+        self.flow_pairs = fv.flow_lines(result)  # the tracker's own matches, carried by the result
         self._after_step(result)
         if self.slam.done:
             self._finish()

@@ -1,11 +1,8 @@
 """What a frame looked like to the tracker: OpenCV drawings and short HTML summaries. No widgets here.
 
-- :func:`tracked_matches` re-derives, read-only, the matches of a tracked frame to the last keyframe (the
-  pipeline keeps only their count): the local map as it was before the step, projected with the frame's
-  pose, guided matching within the tracker's refinement radius, reprojection inliers, and of those the
-  points the last keyframe observes. Same functions and thresholds as :class:`~slamkit.stages.tracker.
-  Tracker`'s last stage, so the lines drawn are the matches the flow score was computed from, up to the
-  pose refinement in between.
+- :func:`flow_lines` gives a step's tracked matches to the last keyframe, as the step result carries them
+  (``StepResult.tracked``): the very matches the flow score and the keyframe decision used. Nothing is
+  re-derived.
 - :func:`draw_flow` draws them like the seed's Figure 2: a line from each point's position in the last
   keyframe to its position in the current frame, a dot at the current one.
 - :func:`keyframe_matches` / :func:`draw_matches`: the keypoints two keyframes share through 3D points.
@@ -21,13 +18,10 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from ..features import FrameFeatures, guided_match
-
 if TYPE_CHECKING:  # pragma: no cover
     from ..config import SlamConfig
     from ..map import SlamMap
     from ..pipeline import Slam, StepResult
-    from ..stages.tracker import LocalMap
 
 FLOW_LINE = (40, 200, 40)
 """RGB of the flow lines (keyframe -> current position)."""
@@ -38,35 +32,12 @@ FLOW_DOT = (230, 30, 30)
 # ---------------------------------------------------------------------------------------------- matches
 
 
-def tracked_matches(local_map: "LocalMap | None", features: FrameFeatures | None,
-                    cam_from_world: np.ndarray | None, slam_map: "SlamMap | None", config: "SlamConfig"
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """(ref_xy (M, 2), cur_xy (M, 2)) undistorted pixels of the frame's tracked matches to the last keyframe.
-
-    local_map: the tracker's local map *before* the step (its reference keyframe is the last keyframe);
-    features: the frame's features; cam_from_world: (4, 4) the frame's pose. Empty arrays when the frame
-    has no pose or no map yet.
-    """
-    empty = np.empty((0, 2)), np.empty((0, 2))
-    if local_map is None or features is None or cam_from_world is None or slam_map is None or len(local_map) == 0:
-        return empty
-    cfg = config.tracker
-    cam = slam_map.pycolmap_camera
-    K = cam.calibration_matrix()
-    idx, uv = local_map.project(np.asarray(cam_from_world, np.float64), K, (cam.width, cam.height))
-    pairs = guided_match(uv, local_map.descriptors[idx], features.keypoints, features.features.descriptors,
-                         local_map.binary, cfg.refine_radius_px, cfg.matching)
-    if len(pairs) == 0:
-        return empty
-    xy = features.keypoints[pairs[:, 1]]
-    inl = np.sum((uv[pairs[:, 0]] - xy) ** 2, axis=1) < cfg.max_error_px ** 2
-    pids = local_map.ids[idx[pairs[inl, 0]]]
-    cur = xy[inl]
-    if len(local_map.ref_ids) == 0:
-        return empty
-    pos = np.minimum(np.searchsorted(local_map.ref_ids, pids), len(local_map.ref_ids) - 1)
-    in_ref = local_map.ref_ids[pos] == pids
-    return local_map.ref_xy[pos[in_ref]], cur[in_ref]
+def flow_lines(result: "StepResult | None") -> tuple[np.ndarray, np.ndarray]:
+    """(ref_xy (M, 2), cur_xy (M, 2)) undistorted pixels of the step's tracked matches to the last keyframe
+    (M = ``result.matches``), from the result itself; empty arrays without a result or a tracked frame."""
+    if result is None:
+        return np.empty((0, 2)), np.empty((0, 2))
+    return result.tracked.flow_lines()
 
 
 def keyframe_matches(slam_map: "SlamMap", image_id1: int, image_id2: int) -> np.ndarray:
@@ -225,5 +196,5 @@ def summary_html(numbers: dict[str, float], scene: dict[str, int] | None = None)
     return f'<div class="slamkit-summary">{text}</div>'
 
 
-__all__ = ["tracked_matches", "keyframe_matches", "draw_flow", "draw_matches", "encode_image", "placeholder",
+__all__ = ["flow_lines", "keyframe_matches", "draw_flow", "draw_matches", "encode_image", "placeholder",
            "fit_width", "step_html", "summary_numbers", "summary_html"]

@@ -1,0 +1,152 @@
+"""The package's import graph: no import cycle anywhere in ``slamkit/``, and no stage module importing another.
+
+Every ``import`` / ``from ... import`` of a slamkit module counts, at module level or inside a function
+(an import hidden in a function still runs, and still closes a cycle); only imports under
+``if TYPE_CHECKING:`` are left out (annotations, never executed). Read with ``ast``: nothing is imported.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parents[1] / "slamkit"
+STAGES = "slamkit.stages"
+
+KNOWN_CYCLES: list[set[str]] = []
+"""Cycles another branch removes (each entry one strongly connected component); the test fails when one of
+them is gone, so the list cannot outlive the fix."""
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = path
+    return out
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    t = node.test
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
+        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING")
+
+
+def _import_nodes(tree: ast.AST):
+    """Import nodes anywhere in the tree except in ``if TYPE_CHECKING:`` blocks."""
+    stack = [tree]
+    while stack:
+        node = stack.pop()
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and _is_type_checking(child):
+                stack.extend(child.orelse)
+                continue
+            if isinstance(child, (ast.Import, ast.ImportFrom)):
+                yield child
+            stack.append(child)
+
+
+def _resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
+    if node.level == 0:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def import_graph() -> dict[str, set[str]]:
+    """slamkit module -> the slamkit modules it imports (a submodule named in ``from pkg import sub`` counts
+    as that submodule)."""
+    modules = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for module, path in modules.items():
+        is_package = path.name == "__init__.py"
+        for node in _import_nodes(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            else:
+                target = _resolve(module, is_package, node)
+                subs = [f"{target}.{a.name}" for a in node.names if f"{target}.{a.name}" in modules]
+                targets = subs or [target]
+            for t in targets:
+                while t and t not in modules:  # "slamkit.x.y" where y is a name: the module is slamkit.x
+                    t = t.rpartition(".")[0]
+                if t.startswith("slamkit") and t != module:
+                    graph[module].add(t)
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan), each as one cycle through it."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(_cycle_in(graph, set(comp)))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def _cycle_in(graph: dict[str, set[str]], comp: set[str]) -> list[str]:
+    """One closed path a -> ... -> a inside a strongly connected component (for the failure message)."""
+    start = min(comp)
+    paths = {start: [start]}
+    queue = [start]
+    while queue:
+        v = queue.pop(0)
+        for w in sorted(graph[v] & comp):
+            if w == start:
+                return paths[v] + [start]
+            if w not in paths:
+                paths[w] = paths[v] + [w]
+                queue.append(w)
+    return sorted(comp)  # pragma: no cover - a component always has a cycle through each member
+
+
+def test_the_checker_finds_a_cycle_and_resolves_relative_imports():
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert cycles(graph) == [["a", "b", "c", "a"]]
+    g = import_graph()
+    assert "slamkit.map" in g["slamkit.stages.mapper"] and "slamkit.camera" in g["slamkit.map"]
+
+
+def test_no_import_cycles():
+    found = cycles(import_graph())
+    unexpected = [c for c in found if set(c) not in KNOWN_CYCLES]
+    assert not unexpected, "import cycles in slamkit/: " + "; ".join(" -> ".join(c) for c in unexpected)
+    gone = [k for k in KNOWN_CYCLES if k not in [set(c) for c in found]]
+    assert not gone, f"these cycles are gone: remove them from KNOWN_CYCLES: {gone}"
+
+
+def test_stages_do_not_import_each_other():
+    graph = import_graph()
+    bad = {m: sorted(t for t in targets if t.startswith(STAGES + ".") and t != m)
+           for m, targets in graph.items() if m.startswith(STAGES + ".")}
+    bad = {m: t for m, t in bad.items() if t}
+    assert not bad, f"stage modules import other stage modules (move shared helpers to geometry.py or map.py): {bad}"
