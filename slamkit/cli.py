@@ -228,9 +228,26 @@ def cmd_presets(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The ``slamkit`` command line: one subcommand per library call."""
     p = argparse.ArgumentParser(prog="slamkit", description="Offline monocular visual SLAM on COLMAP's machinery")
     sub = p.add_subparsers(dest="command", required=True)
+    _add_run_parser(sub)
+    _add_eval_parser(sub)
+    _add_ablate_parser(sub)
+    g = sub.add_parser("gt", help="write a source's ground truth as a TUM file")
+    g.add_argument("source")
+    g.add_argument("out")
+    g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
+                   help="intrinsics, applied before the source is opened (e.g. a TUM layout without a freiburg name)")
+    g.set_defaults(func=cmd_gt)
+    add_export_parser(sub)
+    pr = sub.add_parser("presets", help="list configuration presets")
+    pr.set_defaults(func=cmd_presets)
+    return p
+
+
+def _add_run_parser(sub) -> None:
     r = sub.add_parser("run", help="run SLAM on a source and save the map and trajectory")
     r.add_argument("source", help="'default', 'synthetic:<motion>', a dataset folder, an image folder or a video")
     r.add_argument("--out", required=True,
@@ -245,6 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_config_args(r)
     r.set_defaults(func=cmd_run)
+
+
+def _add_eval_parser(sub) -> None:
     e = sub.add_parser("eval", help="ATE/RPE of a run (or a TUM file) against ground truth")
     e.add_argument("run", help="run folder or trajectory file")
     e.add_argument("--gt", help="ground truth (TUM or KITTI); default RUN/groundtruth_tum.txt")
@@ -252,6 +272,9 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--no-map-view", action="store_true", help="link points.ply instead of a static 3D map page")
     e.add_argument("--json-only", action="store_true", help="print the numbers only (no plots, no report)")
     e.set_defaults(func=cmd_eval)
+
+
+def _add_ablate_parser(sub) -> None:
     a = sub.add_parser("ablate", help="run a parameter grid on sources (local processes or a dask cluster)")
     a.add_argument("sources", nargs="+", metavar="SOURCE", help="sources as for `slamkit run`")
     a.add_argument("--grid", nargs="+", default=[], metavar="NAME=V1,V2",
@@ -265,16 +288,10 @@ def main(argv: list[str] | None = None) -> int:
     a.add_argument("--retry-failed", action="store_true", help="run again the runs recorded as failed")
     a.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     a.set_defaults(func=cmd_ablate)
-    g = sub.add_parser("gt", help="write a source's ground truth as a TUM file")
-    g.add_argument("source")
-    g.add_argument("out")
-    g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
-                   help="intrinsics, applied before the source is opened (e.g. a TUM layout without a freiburg name)")
-    g.set_defaults(func=cmd_gt)
-    add_export_parser(sub)
-    pr = sub.add_parser("presets", help="list configuration presets")
-    pr.set_defaults(func=cmd_presets)
-    args = p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     handler = _SignalsInterrupt()
     previous = handler.install()
     try:

@@ -22,22 +22,22 @@ from .config import SlamConfig
 from .errors import CalibrationError, ImageReadError
 from .features import FrameFeatures, create_extractor, create_matcher
 from .frames import FrameLoader, thumbnail
+from .interrupt import deferred_interrupt
 from .io.run import save_run
 from .local_map import LocalMap
 from .map import SlamMap
 from .results import StepResult, TrackedMatches
-from .interrupt import deferred_interrupt
 from .session import load_session, save_session
 from .sources import open_source
 from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
-from .stages.initializer import Initializer
+from .stages.initializer import Initializer, track_window
 from .stages.keyframes import KeyframeDecision, KeyframeSelector
 from .stages.mapper import Mapper
 from .stages.motion import MotionModel
 from .stages.relocalizer import Relocalizer, RelocalizerConfig
-from .stages.tracker import Tracker, TrackingResult
+from .stages.tracker import Tracker, TrackingResult, retrack_initial_frames
 from .state import FrameRecord, FrameStatus, Segment, SlamState
 from .types import Frame
 
@@ -260,49 +260,10 @@ class Slam:
         # a new segment with the two initial keyframes; the rest of the window is tracked below
         st.start_segment(res.slam_map, res.frames, [f for f in res.frames if f.index < res.second and f.index != res.first])
         st.local_map = self._local_map(res.slam_map, st.last_keyframe)
-        posed, message = self._track_window(res, timings)
+        posed, message = track_window(st, res, self.tracker, self._track, timings)
         record.status = record.status if record.rel_pose is not None else LOST
         return self._result(record, INITIALIZED, res.reason + message, timings, posed_frames=tuple(sorted(posed)),
                             is_keyframe=record.keyframe_image_id > 0)
-
-    def _track_window(self, res, timings: dict) -> tuple[list[int], str]:
-        """The rest of the initialization window. Frames between the initial pair, then those before it, are
-        posed against the two-keyframe map (each predicted by its already-posed neighbour). Frames after
-        the pair go through tracking as if they came now, keyframes and mapping included: the map grows up
-        to the current frame (with fast motion a map of the pair alone may no longer be in view). Returns
-        the posed frames and a note for the result's message ("" or why the new map was lost again)."""
-        st = self.state
-        t = time.perf_counter()
-        frames = sorted(res.frames, key=lambda f: f.index)
-        camera = res.slam_map.pycolmap_camera
-        posed = [res.first, res.second]
-        between = [f for f in frames if res.first < f.index < res.second]
-        before = [f for f in reversed(frames) if f.index < res.first]
-        for seq in (between, before):
-            neighbour = st.pose_of(st.records[res.first])
-            for f in seq:
-                tr = self.tracker.step(f, st.local_map, camera, neighbour)
-                rec = st.records[f.index]
-                if tr.tracked:
-                    st.set_pose(rec, st.last_keyframe, tr.cam_from_world, TRACKED, absolute=True)
-                    posed.append(f.index)
-                    neighbour = tr.cam_from_world
-                else:
-                    rec.status = LOST
-        st.segment.frames.sort()
-        timings["track"] = timings.get("track", 0.0) + time.perf_counter() - t
-        seg = st.segment
-        for f in (f for f in frames if f.index > res.second):
-            step_timings: dict = {}
-            result = self._track(f, st.records[f.index], step_timings)
-            for k, v in step_timings.items():
-                timings[k] = timings.get(k, 0.0) + v
-            if result.has_pose:
-                posed.append(f.index)
-            if st.segment is not seg:  # lost again at once: the next frame starts a new window
-                return posed, f"; frame {f.index}: {result.message}"
-        seg.frames.sort()
-        return posed, ""
 
     # ----------------------------------------------------------------- tracking
     def _track(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
@@ -447,33 +408,11 @@ class Slam:
         st.timings["ba"] = st.timings.get("ba", 0.0) + time.perf_counter() - t
         t2 = time.perf_counter()
         for seg in st.segments:
-            self._retrack_initial_frames(seg)
+            if seg.initial_frames and seg.slam_map.num_keyframes >= 3:  # against the map around its first keyframe
+                first = self._local_map(seg.slam_map, min(seg.slam_map.keyframes))
+                retrack_initial_frames(st, seg, self.tracker, first)
         st.timings["track"] = st.timings.get("track", 0.0) + time.perf_counter() - t2
         st.wall_time += time.perf_counter() - t
-
-    def _retrack_initial_frames(self, seg: Segment) -> None:
-        """Track the frames posed while the map was young again, against the final map around the first
-        keyframes (their first poses came from a two- or three-keyframe map)."""
-        if not seg.initial_frames or seg.slam_map.num_keyframes < 3:
-            return
-        st = self.state
-        slam_map = seg.slam_map
-        first_kf = min(slam_map.keyframes)
-        local_map = self._local_map(slam_map, first_kf)
-        for f in seg.initial_frames:
-            rec = st.records[f.index]
-            if rec.keyframe_image_id > 0:  # keyframes are posed by bundle adjustment
-                continue
-            tr = self.tracker.step(f, local_map, slam_map.pycolmap_camera, st.pose_of(rec))
-            if tr.tracked:
-                ref = np.eye(4)
-                ref[:3] = slam_map.cam_from_world(first_kf).matrix()
-                rec.ref_image_id, rec.rel_pose, rec.segment, rec.status = (first_kf, tr.cam_from_world @ np.linalg.inv(ref),
-                                                                            seg.id, TRACKED)
-                if rec.index not in seg.frames:
-                    seg.frames.append(rec.index)
-        seg.frames.sort()
-        seg.initial_frames = []  # done: features are no longer needed
 
     def _result(self, rec: FrameRecord, status: FrameStatus, message: str, timings: dict,
                 decision: KeyframeDecision | None = None, **kw) -> StepResult:

@@ -51,27 +51,13 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     numbers with the paths written. SlamkitError naming the file when the run folder, its trajectory or
     the ground truth is missing or too short to align."""
     run = Path(run_dir)
-    if not run.exists():
-        raise SlamkitError(f"{run}: does not exist, so it is not a run folder (expected the output folder of "
-                           "`slamkit run`)")
-    if not run.is_dir():
-        raise SlamkitError(f"{run}: not a run folder (expected the output folder of `slamkit run`)")
-    traj_path = run / "trajectory_tum.txt"
-    if not traj_path.exists():
-        raise SlamkitError(f"{traj_path}: missing; is {run} a slamkit run folder?")
-    gt_path = Path(gt) if gt is not None else run / "groundtruth_tum.txt"
-    if not gt_path.exists():
-        raise SlamkitError(f"{gt_path}: no ground truth; pass gt=FILE (--gt FILE)")
+    traj_path, gt_path = _run_inputs(run, gt)
     # what is read is checked first against the run's manifest and formats (a damaged sparse/ model would
     # otherwise hang pycolmap's reader in the map view)
     check_run(run, ("trajectory_tum.txt", "keyframes_tum.txt", "groundtruth_tum.txt", "summary.json",
                     *(("sparse",) if map_view else ())))
     est, gt_traj = _read(traj_path), _read(gt_path)
-    summary = {}
-    if (run / "summary.json").exists():
-        summary = check_json(run / "summary.json")
-        if not isinstance(summary, dict):
-            raise SessionError(f"{run / 'summary.json'}: not a slamkit summary (a JSON {type(summary).__name__})")
+    summary = _summary(run)
     all_frames, a, r = _stats(gt_traj, est, max_dt)
     kf_path = run / "keyframes_tum.txt"
     keyframes, kf_traj = None, None
@@ -91,25 +77,7 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
         "fps": summary.get("fps"), "wall_time_s": summary.get("wall_time_s"),
         "timings_s": summary.get("timings_s", {}),
     }
-    files: dict[str, str] = {}
-    if plots:
-        from . import plots as P  # matplotlib only when plotting: the core imports no UI
-
-        pdir = run / "plots"
-        aligned = a.alignment.apply(est.subset(a.idx_est))
-        gt_m = gt_traj.subset(a.idx_gt)
-        title = str(summary.get("source", run.name))
-        files["trajectory"] = P.plot_trajectory_views(gt_m.positions, aligned.positions, a.errors,
-                                                      pdir / "trajectory.png", title=title,
-                                                      gt_full_xyz=gt_traj.positions)
-        files["error_over_time"] = P.plot_error_over_time(
-            a.timestamps, a.errors, pdir / "error_over_time.png",
-            keyframe_t=kf_traj.timestamps if kf_traj is not None else None,
-            rpe_t=r.timestamps if r is not None else None,
-            rpe_errors=r.translation_errors if r is not None else None, title=title)
-        if result["timings_s"]:
-            files["timings"] = P.plot_timings(result["timings_s"], int(summary.get("frames") or 0),
-                                              pdir / "timings.png")
+    files = _plots(run, summary, est, gt_traj, kf_traj, a, r, result["timings_s"]) if plots else {}
     if map_view:
         files["map"] = _map_view(run)
     result["files"] = {k: str(Path(v).relative_to(run)) for k, v in files.items() if v is not None}
@@ -118,6 +86,55 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     result["report_md"] = str(atomic_write_text(run / "report.md", md))
     result["report_html"] = str(atomic_write_text(run / "report.html", page))
     return result
+
+
+def _run_inputs(run: Path, gt: str | os.PathLike | None) -> tuple[Path, Path]:
+    """(estimate, ground truth) paths of run folder ``run``; SlamkitError naming what is missing."""
+    if not run.exists():
+        raise SlamkitError(f"{run}: does not exist, so it is not a run folder (expected the output folder of "
+                           "`slamkit run`)")
+    if not run.is_dir():
+        raise SlamkitError(f"{run}: not a run folder (expected the output folder of `slamkit run`)")
+    traj_path = run / "trajectory_tum.txt"
+    if not traj_path.exists():
+        raise SlamkitError(f"{traj_path}: missing; is {run} a slamkit run folder?")
+    gt_path = Path(gt) if gt is not None else run / "groundtruth_tum.txt"
+    if not gt_path.exists():
+        raise SlamkitError(f"{gt_path}: no ground truth; pass gt=FILE (--gt FILE)")
+    return traj_path, gt_path
+
+
+def _summary(run: Path) -> dict:
+    """The run's ``summary.json`` ({} when it has none); SessionError naming it when it is not a summary."""
+    if not (run / "summary.json").exists():
+        return {}
+    summary = check_json(run / "summary.json")
+    if not isinstance(summary, dict):
+        raise SessionError(f"{run / 'summary.json'}: not a slamkit summary (a JSON {type(summary).__name__})")
+    return summary
+
+
+def _plots(run: Path, summary: dict, est: Trajectory, gt_traj: Trajectory, kf_traj: Trajectory | None, a, r,
+           timings: dict) -> dict[str, str | None]:
+    """The report's figures under ``run/plots``: trajectory views, error over time, timings."""
+    from . import plots as P  # matplotlib only when plotting: the core imports no UI
+
+    files: dict[str, str | None] = {}
+    pdir = run / "plots"
+    aligned = a.alignment.apply(est.subset(a.idx_est))
+    gt_m = gt_traj.subset(a.idx_gt)
+    title = str(summary.get("source", run.name))
+    files["trajectory"] = P.plot_trajectory_views(gt_m.positions, aligned.positions, a.errors,
+                                                  pdir / "trajectory.png", title=title,
+                                                  gt_full_xyz=gt_traj.positions)
+    files["error_over_time"] = P.plot_error_over_time(
+        a.timestamps, a.errors, pdir / "error_over_time.png",
+        keyframe_t=kf_traj.timestamps if kf_traj is not None else None,
+        rpe_t=r.timestamps if r is not None else None,
+        rpe_errors=r.translation_errors if r is not None else None, title=title)
+    if timings:
+        files["timings"] = P.plot_timings(timings, int(summary.get("frames") or 0), pdir / "timings.png")
+    return files
 
 
 def _json_default(x):

@@ -13,7 +13,9 @@ least ``min_inlier_ratio`` of the matches (with enough parallax).
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import pycolmap
@@ -23,6 +25,11 @@ from ..errors import ConfigError
 from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, bundle_adjustment_options, pycolmap_camera
+from ..state import FrameStatus
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..results import StepResult
+    from ..state import SlamState
 
 STRATEGIES = ("best_pair", "first_inliers")
 
@@ -304,3 +311,46 @@ class Initializer:
         cfg.set_constant_cam_intrinsics(1)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         pycolmap.create_default_bundle_adjuster(opts, cfg, slam_map.reconstruction).solve()
+
+
+def track_window(state: "SlamState", res: "InitResult", tracker, track_frame: Callable[..., "StepResult"],
+                 timings: dict) -> tuple[list[int], str]:
+    """The rest of the initialization window, once ``state`` has a segment of the initial pair.
+
+    Frames between the initial pair, then those before it, are posed against the two-keyframe map by
+    ``tracker`` (a :class:`~slamkit.stages.tracker.Tracker`; each frame predicted by its already-posed
+    neighbour). Frames after the pair go through ``track_frame(features, record, timings)`` (the pipeline's
+    tracking, keyframes and mapping included) as if they came now: the map grows up to the current frame
+    (with fast motion a map of the pair alone may no longer be in view). Returns the posed frames and a
+    note for the result's message ("" or why the new map was lost again)."""
+    t = time.perf_counter()
+    frames = sorted(res.frames, key=lambda f: f.index)
+    camera = res.slam_map.pycolmap_camera
+    posed = [res.first, res.second]
+    between = [f for f in frames if res.first < f.index < res.second]
+    before = [f for f in reversed(frames) if f.index < res.first]
+    for seq in (between, before):
+        neighbour = state.pose_of(state.records[res.first])
+        for f in seq:
+            tr = tracker.step(f, state.local_map, camera, neighbour)
+            rec = state.records[f.index]
+            if tr.tracked:
+                state.set_pose(rec, state.last_keyframe, tr.cam_from_world, FrameStatus.TRACKED, absolute=True)
+                posed.append(f.index)
+                neighbour = tr.cam_from_world
+            else:
+                rec.status = FrameStatus.LOST
+    state.segment.frames.sort()
+    timings["track"] = timings.get("track", 0.0) + time.perf_counter() - t
+    seg = state.segment
+    for f in (f for f in frames if f.index > res.second):
+        step_timings: dict = {}
+        result = track_frame(f, state.records[f.index], step_timings)
+        for k, v in step_timings.items():
+            timings[k] = timings.get(k, 0.0) + v
+        if result.has_pose:
+            posed.append(f.index)
+        if state.segment is not seg:  # lost again at once: the next frame starts a new window
+            return posed, f"; frame {f.index}: {result.message}"
+    seg.frames.sort()
+    return posed, ""

@@ -15,6 +15,7 @@ TrackWithMotionModel / TrackReferenceKeyFrame / TrackLocalMap, on pycolmap's est
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
@@ -24,6 +25,10 @@ from ..features import FrameFeatures, MatchingConfig, guided_match, match_descri
 from ..local_map import POINT_DESCRIPTORS, LocalMap
 from ..map import matrix_from_rigid, rigid_from_matrix
 from ..results import TrackedMatches
+from ..state import FrameStatus
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..state import Segment, SlamState
 
 
 
@@ -278,3 +283,25 @@ class Tracker:
         uv, z = _project(cam_from_world, xyz, K)
         err2 = ((uv - xy) ** 2).sum(axis=1)
         return (z > 1e-9) & (err2 < self.config.max_error_px ** 2)
+
+
+def retrack_initial_frames(state: "SlamState", seg: "Segment", tracker: Tracker, local_map: LocalMap) -> None:
+    """Track the frames of ``seg`` posed while its map was young again with ``tracker``, against
+    ``local_map`` built around the map's first keyframe (their first poses came from a two- or three-keyframe
+    map); keyframes keep the poses bundle adjustment gave them. Clears ``seg.initial_frames``."""
+    slam_map = seg.slam_map
+    first_kf = min(slam_map.keyframes)
+    for f in seg.initial_frames:
+        rec = state.records[f.index]
+        if rec.keyframe_image_id > 0:  # keyframes are posed by bundle adjustment
+            continue
+        tr = tracker.step(f, local_map, slam_map.pycolmap_camera, state.pose_of(rec))
+        if tr.tracked:
+            ref = np.eye(4)
+            ref[:3] = slam_map.cam_from_world(first_kf).matrix()
+            rec.ref_image_id, rec.rel_pose, rec.segment, rec.status = (
+                first_kf, tr.cam_from_world @ np.linalg.inv(ref), seg.id, FrameStatus.TRACKED)
+            if rec.index not in seg.frames:
+                seg.frames.append(rec.index)
+    seg.frames.sort()
+    seg.initial_frames = []  # done: features are no longer needed
