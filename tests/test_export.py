@@ -89,7 +89,8 @@ def test_colmap_keyframes_round_trip(run_dir, tmp_path):
     names = sorted(rec.image(i).name for i in rec.reg_image_ids())
     assert names == sorted(p.name for p in (tmp_path / "ds" / "images").iterdir())
     cam = rec.camera(1)
-    assert cam.model.name == "PINHOLE" and list(cam.params) == list(run.camera(1).params)
+    fx, fy, cx, cy = run.camera(1).params  # COLMAP's pixel centres are at +0.5, slamkit's at 0
+    assert cam.model.name == "PINHOLE" and list(cam.params) == [fx, fy, cx + 0.5, cy + 0.5]
     source = open_source("default")
     run_by_name = {run.image(i).name: run.image(i) for i in run.reg_image_ids()}
     for iid in rec.reg_image_ids():
@@ -145,7 +146,8 @@ def test_nerfstudio_transforms_poses_intrinsics_and_point_cloud(run_dir, tmp_pat
     doc = json.loads((tmp_path / "ns" / "transforms.json").read_text())
     run = pycolmap.Reconstruction(str(run_dir / "sparse"))
     fx, fy, cx, cy = run.camera(1).params
-    assert (doc["fl_x"], doc["fl_y"], doc["cx"], doc["cy"], doc["w"], doc["h"]) == (fx, fy, cx, cy, 640, 480)
+    assert (doc["fl_x"], doc["fl_y"], doc["cx"], doc["cy"], doc["w"], doc["h"]) == (fx, fy, cx + 0.5, cy + 0.5,
+                                                                                   640, 480)
     assert doc["camera_model"] == "PINHOLE" and "k1" not in doc
     assert len(doc["frames"]) == len(traj) == FRAMES
     xyz = np.array([run.point3D(p).xyz for p in run.point3D_ids()])
@@ -283,8 +285,8 @@ def test_undistorted_export_has_straight_edges_and_a_pinhole_camera(distorted_ru
         assert rms < 0.3
         # where the pinhole camera puts the painted edge: the same rays, principal point moved to (cx, cy)
         (x0, y0), (x1, y1) = LINE
-        x0, x1 = x0 - 319.5 + cx, x1 - 319.5 + cx
-        y0, y1 = y0 - 239.5 + cy, y1 - 239.5 + cy
+        x0, x1 = x0 - 319.5 + (cx - 0.5), x1 - 319.5 + (cx - 0.5)  # exported cx is COLMAP's (+0.5 px)
+        y0, y1 = y0 - 239.5 + (cy - 0.5), y1 - 239.5 + (cy - 0.5)
         expected = y0 + (y1 - y0) * (np.array([x0, x1]) - x0) / (x1 - x0)
         assert np.abs(np.polyval((a, b), [x0, x1]) - expected).max() < 0.2  # 0.5 px off without the convention shift
     mean, _ = _reprojection(rec)
@@ -304,7 +306,7 @@ def test_distorted_export_keeps_the_lens_model(distorted_run, tmp_path):
     colmap = export(run_dir, tmp_path / "ds", format="colmap")
     rec = pycolmap.Reconstruction(str(tmp_path / "ds" / "sparse" / "0"))
     assert colmap.camera_model == res.camera_model == "OPENCV"
-    assert list(rec.camera(1).params) == [500.0, 500.0, 319.5, 239.5, K1, 0.0, 0.0, 0.0]
+    assert list(rec.camera(1).params) == [500.0, 500.0, 320.0, 240.0, K1, 0.0, 0.0, 0.0]  # COLMAP's +0.5 px
     _, errors = _reprojection(rec)  # observations re-distorted: they still sit on their points' projections
     assert np.percentile(errors, 95) < 4.0
 
@@ -358,7 +360,8 @@ def test_lens_with_k3_maps_pixels_and_images_consistently():
     assert kept.model_name == "FULL_OPENCV" and list(kept.camera.params[8:]) == [fr1.dist[4], 0.0, 0.0, 0.0]
     rng = np.random.default_rng(0)
     distorted = rng.uniform([60, 60], [580, 420], size=(50, 2))
-    np.testing.assert_allclose(kept.from_model(fr1.undistort_points(distorted)), distorted, atol=0.02)
+    # exported pixels are COLMAP's: OpenCV's (array indices) + 0.5
+    np.testing.assert_allclose(kept.from_model(fr1.undistort_points(distorted)), distorted + 0.5, atol=0.02)
     flat = ExportCamera.create(fr1, undistort=True)
     assert flat.model_name == "PINHOLE"
     yy, xx = np.mgrid[0:480, 0:640]
@@ -369,4 +372,4 @@ def test_lens_with_k3_maps_pixels_and_images_consistently():
         out[out < 20] = 0
         gy, gx = np.mgrid[0:out.shape[0], 0:out.shape[1]]
         centre = np.array([(gx * out).sum(), (gy * out).sum()]) / out.sum()
-        np.testing.assert_allclose(centre, flat.from_model(fr1.undistort_points(p[None]))[0], atol=0.15)
+        np.testing.assert_allclose(centre + 0.5, flat.from_model(fr1.undistort_points(p[None]))[0], atol=0.15)

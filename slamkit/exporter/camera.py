@@ -10,9 +10,10 @@ disk are the source's, distortion included. The export chooses one of three came
   ``colmap image_undistorter`` step) onto the PINHOLE camera ``pycolmap.undistort_camera`` chooses (same
   focal lengths, size and principal point covering the valid pixels); observations become K' K^-1 p.
 
-Pixel convention: slamkit's (and OpenCV's) pixel centres are at integer coordinates, COLMAP's image warps
-put them at +0.5; the principal point is shifted by 0.5 px around the calls to COLMAP's undistorter, so the
-exported camera stays in the run's convention and the exported observations stay exact.
+Pixel convention: slamkit's (and OpenCV's) pixel centres are at integer coordinates; COLMAP, gsplat, 3DGS
+and nerfstudio put them at +0.5. The exported camera and observations are in COLMAP's convention: principal
+point and 2D points are the run's plus 0.5 px (``PIXEL_CENTER``), so a tool reading the export projects each
+point onto the same image pixel as slamkit does.
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ import pycolmap
 from ..camera import Intrinsics
 
 CAMERA_ID = 1
+
+PIXEL_CENTER = 0.5
+"""COLMAP's coordinate of the centre of the top-left pixel (slamkit's and OpenCV's is 0)."""
 
 
 def _colmap_distorted(camera: Intrinsics, shift: float = 0.0) -> pycolmap.Camera:
@@ -56,14 +60,15 @@ class ExportCamera:
         """PINHOLE when ``source`` has no distortion; else OPENCV, or PINHOLE after undistortion."""
         if not source.has_distortion:
             cam = pycolmap.Camera(model="PINHOLE", width=source.width, height=source.height,
-                                  params=[source.fx, source.fy, source.cx, source.cy], camera_id=CAMERA_ID)
+                                  params=[source.fx, source.fy, source.cx + PIXEL_CENTER, source.cy + PIXEL_CENTER],
+                                  camera_id=CAMERA_ID)
             return cls(source, cam, False, source.K)
+        distorted = _colmap_distorted(source, PIXEL_CENTER)
         if not undistort:
-            return cls(source, _colmap_distorted(source), False, source.K)
-        new = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), _colmap_distorted(source, 0.5))
-        fx, fy, cx, cy = (float(v) for v in new.params[:4])
+            return cls(source, distorted, False, source.K)
+        new = pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(), distorted)
         cam = pycolmap.Camera(model="PINHOLE", width=new.width, height=new.height,
-                              params=[fx, fy, cx - 0.5, cy - 0.5], camera_id=CAMERA_ID)
+                              params=[float(v) for v in new.params[:4]], camera_id=CAMERA_ID)
         return cls(source, cam, True, source.K)
 
     @property
@@ -76,7 +81,8 @@ class ExportCamera:
         return int(self.camera.width), int(self.camera.height)
 
     def from_model(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 2) pixels of the run's PINHOLE model -> (N, 2) float64 pixels of the exported images."""
+        """(N, 2) pixels of the run's PINHOLE model -> (N, 2) float64 pixels of the exported images (COLMAP's
+        convention: the exported camera's principal point carries the +0.5 px)."""
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         if len(xy) == 0:
             return xy.copy()
@@ -93,5 +99,5 @@ class ExportCamera:
             return rgb
         bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(rgb))
         out, _ = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(), bitmap,
-                                          _colmap_distorted(self.source, 0.5))
+                                          _colmap_distorted(self.source, PIXEL_CENTER))
         return np.asarray(out.to_array(), np.uint8).reshape(self.size[1], self.size[0], -1)
