@@ -18,6 +18,7 @@ import textwrap
 import time
 
 import numpy as np
+import pycolmap
 import pytest
 
 pytest.importorskip("meshcat")
@@ -519,6 +520,11 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert "showing the saved run" in app.w_status.value and "<" not in app.status_text
         page = app.export_html().read_text()
         assert "<title>slamkit map: " in page and "MeshCat</title>" not in page and "slamkit-caption" in page
+        # Export dataset: every posed frame of the main segment, its image beside the model
+        ds = app.export_dataset("colmap")
+        rec = pycolmap.Reconstruction(str(ds / "sparse" / "0"))
+        assert rec.num_reg_images() == len(app.slam.trajectory()) and "dataset written" in app.status_text
+        assert all((ds / "images" / rec.image(i).name).is_file() for i in rec.reg_image_ids())
         # Reset forgets the discarded run's picture, clip range and track
         app.reset()
         assert app.m_image.value == b"" and app.m_label.value == ""

@@ -31,6 +31,7 @@ import numpy as np
 
 from ..config import SlamConfig
 from ..errors import SlamkitError
+from ..exporter import export
 from ..pipeline import Slam, StepResult
 from ..sources import open_source
 from . import frame_view as fv
@@ -92,6 +93,7 @@ class SlamApp(AppWidgets):
         self.b_save.on_click(lambda _: self._guard(self.save))
         self.b_load.on_click(lambda _: self._guard(self.load))
         self.b_html.on_click(lambda _: self._guard(self.export_html))
+        self.b_export.on_click(lambda _: self._guard(self.export_dataset))
         self.b_matches.on_click(lambda _: self._guard(self.draw_keyframe_matches))
         self.b_camera.on_click(lambda _: self._guard(self.view.reset_camera))
         self.w_default.on_click(lambda _: setattr(self.w_source, "value", DEFAULT_SOURCE))
@@ -335,6 +337,19 @@ class SlamApp(AppWidgets):
         self.view.export_html(path, title=f"slamkit map: {run}", caption=caption)
         self._status(f"3D view exported to {path}")
         return path
+
+    def export_dataset(self, format: str | None = None, out: str | Path | None = None) -> Path:
+        """Save the run to the output folder, then write it as a Gaussian-splatting / NeRF dataset with every
+        posed frame (:func:`slamkit.export`; ``format`` "colmap" or "nerfstudio", default the dropdown's) to
+        ``out`` (default ``<output folder>-<format>``)."""
+        fmt = format or self.w_export_format.value
+        run_dir = self.save()
+        out = Path(out or f"{run_dir}-{fmt}")
+        self._status(f"exporting every posed frame as a {fmt} dataset to {out} ...")
+        res = export(run_dir, out, format=fmt, frames="all", source=self.slam.source)
+        self._status(f"{fmt} dataset written to {out}: {res.num_images} images, {res.num_points} points "
+                     f"({res.camera_model} camera)")
+        return out
 
     def close(self) -> None:
         """Stop a background run and the viewer's server (when this app started it)."""

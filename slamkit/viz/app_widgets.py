@@ -124,6 +124,11 @@ class AppWidgets:
                                icon="folder-open", layout=bl)
         self.b_html = W.Button(description="Export HTML", tooltip="the 3D view as one HTML file (output folder)",
                                icon="file", layout=W.Layout(width="120px"))
+        self.w_export_format = W.Dropdown(options=[("COLMAP (gsplat, 3DGS)", "colmap"), ("nerfstudio", "nerfstudio")],
+                                          value="colmap", layout=W.Layout(width="190px"))
+        self.b_export = W.Button(description="Export dataset", icon="cubes", layout=W.Layout(width="140px"),
+                                 tooltip="save the run, then write it as a Gaussian-splatting / NeRF dataset "
+                                         "(every posed frame) to <output folder>-<format>")
 
     def _build_view_controls(self, vs: ViewSettings) -> None:
         vstyle = {"description_width": "110px"}
@@ -177,6 +182,7 @@ class AppWidgets:
             W.HBox([self.w_source, self.w_default]), self.w_skip, self.w_max, self.w_init, self.w_flow,
             self.w_matches, self.w_help, self.w_features, self.w_features_note, self.w_out,
             W.HBox([self.b_step, self.b_run, self.b_reset, self.b_save, self.b_load, self.b_html]),
+            W.HBox([self.w_export_format, self.b_export]),
             self.w_pending, self.w_status,
         ])
         settings = W.VBox([
