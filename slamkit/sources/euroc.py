@@ -173,6 +173,27 @@ def _mav0(root: Path) -> Path:
     raise SourceError(f"{root} is not an EuRoC sequence (no mav0/ and no cam0/data.csv)")
 
 
+def _camera(camera: Intrinsics | float | str | None, sensor, yaml: Path, cam_dir: Path, first_image: Path
+            ) -> Intrinsics:
+    """The intrinsics: ``camera`` when given, else a ``camera.txt`` beside the images, else ``sensor.yaml``;
+    CalibrationError naming the file and the ways to give them."""
+    w, h = image_size(first_image)
+    where = str(first_image)
+    calib = find_camera_txt(cam_dir, cam_dir / "data") if camera is None else None
+    if calib is not None:
+        camera = read_camera_txt(calib, w, h)
+    if camera is None:
+        if sensor is None:
+            raise CalibrationError(f"{yaml}: missing; give the intrinsics: --camera fx,fy,cx,cy[,k1,k2,p1,p2] on "
+                                   "the command line (Python: camera=Intrinsics(...)), or restore sensor.yaml")
+        try:
+            camera = sensor.camera()
+        except CalibrationError as e:
+            raise CalibrationError(f"{yaml}: {e}") from None
+        where = f"{yaml} (resolution {sensor.resolution[0]}x{sensor.resolution[1]}) with the image {where}"
+    return resolve_camera(camera, w, h, where=where)
+
+
 def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | float | str | None = None,
                max_dt: float = 0.02, min_gt_fraction: float = 0.5, frame_skip: int = 1,
                max_frames: int | None = None) -> ImageListSource:
@@ -206,21 +227,7 @@ def open_euroc(path: str | Path, *, cam: str = "cam0", camera: Intrinsics | floa
     keep = select(len(names), frame_skip, max_frames)
     yaml = cam_dir / "sensor.yaml"
     sensor = read_euroc_sensor(yaml) if yaml.is_file() else None
-    w, h = image_size(paths[keep[0]])
-    where = str(paths[keep[0]])
-    calib = find_camera_txt(cam_dir, cam_dir / "data") if camera is None else None
-    if calib is not None:
-        camera = read_camera_txt(calib, w, h)
-    if camera is None:
-        if sensor is None:
-            raise CalibrationError(f"{yaml}: missing; give the intrinsics: --camera fx,fy,cx,cy[,k1,k2,p1,p2] on "
-                                   "the command line (Python: camera=Intrinsics(...)), or restore sensor.yaml")
-        try:
-            camera = sensor.camera()
-        except CalibrationError as e:
-            raise CalibrationError(f"{yaml}: {e}") from None
-        where = f"{yaml} (resolution {sensor.resolution[0]}x{sensor.resolution[1]}) with the image {where}"
-    cam_intr = resolve_camera(camera, w, h, where=where)
+    cam_intr = _camera(camera, sensor, yaml, cam_dir, paths[keep[0]])
     t = t_ns * 1e-9
     gt = None
     gt_file = mav0 / "state_groundtruth_estimate0" / "data.csv"
