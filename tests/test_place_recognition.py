@@ -97,6 +97,24 @@ def test_identical_descriptors_score_maximum(vocabulary, orb, default_seq):
     assert db.score(0, 120) == pytest.approx(dict(db.query(descs[0], k=4))[120], abs=1e-6)
 
 
+def test_query_budget_keeps_the_rarest_words(vocabulary, orb, default_seq):
+    """With a budget far below the postings a query would visit, the query is scored on its rarest words
+    only: partial scores (below the full ones), and the same frame still comes first."""
+    frames = list(range(0, 360, 12))
+    descs = {i: orb.extract(default_seq[i].gray).descriptors for i in frames}
+    full, budget = PlaceDatabase(vocabulary, max_postings=None), PlaceDatabase(vocabulary, max_postings=300)
+    for i, d in descs.items():
+        full.add(i, d)
+        budget.add(i, d)
+    words, _ = vocabulary.bow(descs[96])
+    assert sum(full._postings[w].n for w in words.tolist()) > 10 * 300
+    a, b = full.query(descs[96], k=3), budget.query(descs[96], k=3)
+    assert a[0][0] == b[0][0] == 96
+    assert b[0][1] < 0.5 * a[0][1]
+    with pytest.raises(ConfigError, match="max_postings"):
+        PlaceDatabase(vocabulary, max_postings=0)
+
+
 def test_remove_and_arrays_round_trip(vocabulary, orb, default_seq, tmp_path):
     descs = {i: orb.extract(default_seq[i].gray).descriptors for i in (0, 30, 200, 250)}
     db = PlaceDatabase(vocabulary)
@@ -112,7 +130,7 @@ def test_remove_and_arrays_round_trip(vocabulary, orb, default_seq, tmp_path):
     np.savez(tmp_path / "db.npz", **db.to_arrays())
     with np.load(tmp_path / "db.npz", allow_pickle=False) as arrays:
         back = PlaceDatabase.from_arrays(arrays)
-    assert back.image_ids == [0, 77, 200, 250]
+    assert back.image_ids == [0, 77, 200, 250] and back.max_postings == db.max_postings
     for d in descs.values():
         got, want = back.query(d, k=4), db.query(d, k=4)
         assert [i for i, _ in got] == [i for i, _ in want]

@@ -4,6 +4,12 @@ Each keyframe is stored as its TF-IDF bag of words (:meth:`Vocabulary.bow`). The
 every word, the keyframes that contain it with their weights, so a query only visits the keyframes that
 share a word with it; scores are DBoW2's L1 score ``s(v, w) = 1 - |v - w|_1 / 2`` of L1-normalised vectors,
 which equals ``sum_i min(v_i, w_i)``: 1 for identical bags, 0 for bags without a common word.
+
+The inverted file alone makes a query cost proportional to the number of (keyframe, word) entries it
+visits, which grows with the database. ``max_postings`` bounds it: when the query's words would visit more
+entries, only its rarest words in the database (shortest posting lists, the most discriminative ones, as a
+stop list drops the most frequent words in Sivic and Zisserman's Video Google) are scored until the budget is
+spent, so the query time stays bounded and the scores become partial sums (lower bounds of the full score).
 """
 
 from __future__ import annotations
@@ -50,10 +56,14 @@ class PlaceDatabase:
 
     ``add(image_id, descriptors)`` a keyframe, ``remove(image_id)`` it when culled, ``query(descriptors, k,
     exclude)`` the most similar keyframes. Image ids are any non-negative integers (e.g. pycolmap image ids).
+    ``max_postings``: most (keyframe, word) entries one query visits (None: no bound); see the module doc.
     """
 
-    def __init__(self, vocabulary: Vocabulary):
+    def __init__(self, vocabulary: Vocabulary, max_postings: int | None = 200_000):
+        if max_postings is not None and (int(max_postings) != max_postings or max_postings < 1):
+            raise ConfigError(f"max_postings must be a positive integer or None (got {max_postings!r})")
         self.vocabulary = vocabulary
+        self.max_postings = max_postings
         self._slot_of: dict[int, int] = {}
         self._image_of_slot: list[int] = []
         self._bows: list[tuple[np.ndarray, np.ndarray] | None] = []
@@ -154,13 +164,14 @@ class PlaceDatabase:
 
     def _scores(self, words: np.ndarray, weights: np.ndarray) -> np.ndarray:
         """(num_slots,) float64 L1 scores of every slot against the query bag (0 for free slots)."""
-        slots, mins = [], []
-        for w, v in zip(words.tolist(), weights.tolist()):
-            post = self._postings.get(w)
-            if post is None or post.n == 0:
-                continue
-            slots.append(post.slots[:post.n])
-            mins.append(np.minimum(post.weights[:post.n], v))
+        hits = [(post, v) for post, v in ((self._postings.get(w), v) for w, v in zip(words.tolist(), weights.tolist()))
+                if post is not None and post.n > 0]
+        if self.max_postings is not None and sum(post.n for post, _ in hits) > self.max_postings:
+            hits.sort(key=lambda item: item[0].n)  # rarest words first
+            lengths = np.cumsum([post.n for post, _ in hits])
+            hits = hits[:max(1, int(np.searchsorted(lengths, self.max_postings, side="right")))]
+        slots = [post.slots[:post.n] for post, _ in hits]
+        mins = [np.minimum(post.weights[:post.n], v) for post, v in hits]
         if not slots:
             return np.zeros(len(self._bows))
         return np.bincount(np.concatenate(slots), weights=np.concatenate(mins), minlength=len(self._bows))
@@ -173,6 +184,7 @@ class PlaceDatabase:
         out = self.vocabulary.to_arrays()
         out.update({
             "database_format": np.array(_FORMAT_VERSION, np.int64),
+            "database_max_postings": np.array(-1 if self.max_postings is None else self.max_postings, np.int64),
             "database_image_ids": np.array(ids, np.int64),
             "database_indptr": np.concatenate([[0], np.cumsum(lengths, dtype=np.int64)]).astype(np.int64),
             "database_words": np.concatenate([w for w, _ in bows] or [np.zeros(0, np.int32)]).astype(np.int32),
@@ -190,7 +202,8 @@ class PlaceDatabase:
         if int(arrays["database_format"]) != _FORMAT_VERSION:
             raise ConfigError(f"place database arrays: format {int(arrays['database_format'])}, "
                               f"expected {_FORMAT_VERSION}")
-        db = cls(Vocabulary.from_arrays(arrays))
+        budget = int(arrays["database_max_postings"]) if "database_max_postings" in arrays else -1
+        db = cls(Vocabulary.from_arrays(arrays), None if budget < 0 else budget)
         ids, ptr = np.asarray(arrays["database_image_ids"]), np.asarray(arrays["database_indptr"])
         words, weights = np.asarray(arrays["database_words"]), np.asarray(arrays["database_weights"])
         if len(ptr) != len(ids) + 1 or ptr[-1] != len(words) or len(words) != len(weights):
