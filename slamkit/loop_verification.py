@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass, field
+from typing import Collection, Mapping, Sequence
 
 import numpy as np
 import pycolmap
@@ -173,3 +174,51 @@ def verify_loop_candidate(query_points: np.ndarray, query_descriptors: np.ndarra
         raise ConfigError("points and descriptors must have one row per map point")
     pairs = match_map_points(query_descriptors, candidate_descriptors, binary, matching)
     return verify_loop(qp[pairs[:, 0]], cp[pairs[:, 1]], config), pairs
+
+
+# ------------------------------------------------------------------------------------------------------
+# temporal consistency of candidates (ORB-SLAM's covisibility-consistency check)
+
+
+@dataclass(frozen=True)
+class ConsistentGroup:
+    """A candidate keyframe with its covisible keyframes, and for how many successive query keyframes a
+    candidate group sharing a keyframe with it was found."""
+
+    keyframes: frozenset[int]
+    consistency: int
+
+
+def update_consistent_groups(previous: Sequence[ConsistentGroup], candidate_groups: Mapping[int, Collection[int]],
+                             min_consistency: int = 3) -> tuple[tuple[ConsistentGroup, ...], list[int]]:
+    """One step of ORB-SLAM's loop-candidate consistency check (``LoopClosing::DetectLoop``).
+
+    previous: the groups returned for the previous query keyframe (empty at first, and after a loop closure).
+    candidate_groups: candidate keyframe id -> its covisible keyframe ids (the candidate itself is added),
+        for the place-recognition candidates of the current query keyframe.
+    min_consistency: a candidate passes once its group chains with groups of ``min_consistency`` previous
+        query keyframes (ORB-SLAM: 3, so a place must be recognised by four successive keyframes).
+    Returns (the groups to pass at the next query, candidates consistent enough, in the given order). A query
+    without candidates returns no groups: consistency must be uninterrupted.
+    """
+    if int(min_consistency) != min_consistency or min_consistency < 0:
+        raise ConfigError(f"min_consistency must be a non-negative integer (got {min_consistency!r})")
+    current: list[ConsistentGroup] = []
+    extended = [False] * len(previous)
+    enough: list[int] = []
+    for candidate, covisible in candidate_groups.items():
+        group = frozenset(int(k) for k in covisible) | {int(candidate)}
+        linked = False
+        for g, prev in enumerate(previous):
+            if not group & prev.keyframes:
+                continue
+            linked = True
+            consistency = prev.consistency + 1
+            if not extended[g]:
+                current.append(ConsistentGroup(group, consistency))
+                extended[g] = True
+            if consistency >= min_consistency and int(candidate) not in enough:
+                enough.append(int(candidate))
+        if not linked:
+            current.append(ConsistentGroup(group, 0))
+    return tuple(current), enough

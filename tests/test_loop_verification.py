@@ -7,7 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from slamkit.errors import ConfigError
-from slamkit.loop_verification import LoopStatus, LoopVerificationConfig, verify_loop, verify_loop_candidate
+from slamkit.loop_verification import (ConsistentGroup, LoopStatus, LoopVerificationConfig, update_consistent_groups,
+                                      verify_loop, verify_loop_candidate)
 from slamkit.pose_graph import sim3_decompose, sim3_matrix
 
 TRUE_SCALE = 0.62
@@ -85,3 +86,22 @@ def test_bad_input_is_a_config_error():
         verify_loop(np.zeros((5, 3)), np.zeros((6, 3)))
     with pytest.raises(ConfigError, match="min_inlier_ratio"):
         LoopVerificationConfig(min_inlier_ratio=2)
+
+
+def test_candidates_must_be_consistent_over_successive_keyframes():
+    """A place recognised by four successive query keyframes (candidates 10, 11, 12, 13 whose covisible
+    groups overlap) passes at the fourth; a one-off candidate (50) and an interrupted chain do not."""
+    covisible = {k: {k - 1, k + 1} for k in range(100)}
+    groups: tuple[ConsistentGroup, ...] = ()
+    passed = []
+    for step, candidates in enumerate([[10, 50], [11], [12, 80], [13]]):
+        groups, enough = update_consistent_groups(groups, {c: covisible[c] for c in candidates})
+        passed.append(enough)
+    assert passed == [[], [], [], [13]]
+    assert max(g.consistency for g in groups) == 3
+    groups = ()
+    for candidates in ([10], [11], [], [12], [13]):  # a query keyframe without candidates breaks the chain
+        groups, enough = update_consistent_groups(groups, {c: covisible[c] for c in candidates})
+        assert enough == []
+    with pytest.raises(ConfigError, match="min_consistency"):
+        update_consistent_groups((), {}, min_consistency=-1)
