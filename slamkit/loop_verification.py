@@ -61,14 +61,16 @@ class LoopVerificationConfig:
         if self.min_matches < 3 or self.min_inliers < 3:
             raise ConfigError("LoopVerificationConfig: min_matches and min_inliers must be >= 3 (a Sim(3) needs 3)")
         if not 0 <= self.min_inlier_ratio <= 1:
-            raise ConfigError(f"LoopVerificationConfig.min_inlier_ratio must be in [0, 1] (got {self.min_inlier_ratio})")
+            raise ConfigError(f"LoopVerificationConfig.min_inlier_ratio must be in [0, 1] "
+                              f"(got {self.min_inlier_ratio})")
         if self.max_error is not None and not self.max_error > 0:
             raise ConfigError(f"LoopVerificationConfig.max_error must be > 0 or None (got {self.max_error})")
         if not self.relative_error > 0:
             raise ConfigError(f"LoopVerificationConfig.relative_error must be > 0 (got {self.relative_error})")
         low, high = self.scale_range
         if not 0 < low <= 1 <= high:
-            raise ConfigError(f"LoopVerificationConfig.scale_range must satisfy 0 < low <= 1 <= high (got {self.scale_range})")
+            raise ConfigError(f"LoopVerificationConfig.scale_range must satisfy 0 < low <= 1 <= high "
+                              f"(got {self.scale_range})")
 
 
 @dataclass(frozen=True)

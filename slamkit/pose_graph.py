@@ -20,7 +20,7 @@ from typing import Collection, Iterable, Literal, Mapping
 import numpy as np
 import pycolmap
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
+from scipy.sparse import csr_matrix
 from scipy.spatial.transform import Rotation
 
 from .errors import ConfigError
@@ -171,12 +171,15 @@ def _unpack(sims: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 class _Problem:
-    """Residuals of a pose graph over perturbations ``(dω, dt, dσ)`` of the free keyframes:
-    ``R = exp(dω) R0``, ``t = t0 + dt``, ``s = s0 exp(dσ)`` (no singularity for corrections below pi)."""
+    """Residuals of a pose graph over perturbations ``(dω, dc, dσ)`` of the free keyframes: ``R = exp(dω) R0``,
+    camera centre ``c = c0 + dc`` (world), ``s = s0 exp(dσ)``, ``t = -s R c``. Moving the centre rather than
+    ``t`` keeps rotation and position decoupled (a rotation does not swing the camera about the world origin),
+    which keeps long loops well conditioned; no singularity for rotation corrections below pi."""
 
     def __init__(self, ids: list[int], initial: np.ndarray, edges: list[PoseGraphEdge], fixed: set[int]):
         index = {k: n for n, k in enumerate(ids)}
-        self.s0, self.r0, self.t0 = _unpack(initial)
+        self.s0, self.r0, t0 = _unpack(initial)
+        self.c0 = -np.einsum("nba,nb->na", self.r0, t0) / self.s0[:, None]
         self.free = np.array([k not in fixed for k in ids])
         self.slot = np.cumsum(self.free) - 1
         self.ei = np.array([index[e.i] for e in edges])
@@ -185,38 +188,65 @@ class _Problem:
         self.sw = np.sqrt([e.weight for e in edges])
         self.num_params = 7 * int(self.free.sum())
 
-    def nodes(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        s, r, t = self.s0.copy(), self.r0.copy(), self.t0.copy()
+    def states(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(n,) scales, (n, 3, 3) rotations, (n, 3) centres of all keyframes for parameters x."""
+        s, r, c = self.s0.copy(), self.r0.copy(), self.c0.copy()
         p = x.reshape(-1, 7)
         f = self.free
         r[f] = Rotation.from_rotvec(p[:, :3]).as_matrix() @ r[f]
-        t[f] = t[f] + p[:, 3:6]
+        c[f] = c[f] + p[:, 3:6]
         s[f] = s[f] * np.exp(p[:, 6])
-        return s, r, t
+        return s, r, c
 
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        s, r, t = self.nodes(x)
-        si, ri, ti, sj, rj, tj = s[self.ei], r[self.ei], t[self.ei], s[self.ej], r[self.ej], t[self.ej]
-        # S_ij · S_jw
-        sa = self.ms * sj
+    def nodes(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(n,) scales, (n, 3, 3) rotations, (n, 3) translations of the ``S_iw`` for parameters x."""
+        s, r, c = self.states(x)
+        return s, r, -s[:, None] * np.einsum("nab,nb->na", r, c)
+
+    def _edge_residuals(self, si, ri, ci, sj, rj, cj) -> np.ndarray:
+        """(E, 7) unweighted residuals ``(rotvec, t, log s)`` of ``S_ij · S_jw · S_iw^-1`` per edge."""
+        ti = -si[:, None] * np.einsum("eab,eb->ea", ri, ci)
+        tj = -sj[:, None] * np.einsum("eab,eb->ea", rj, cj)
+        sa = self.ms * sj  # S_ij · S_jw
         ra = self.mr @ rj
         ta = self.ms[:, None] * np.einsum("eab,eb->ea", self.mr, tj) + self.mt
-        # (S_ij · S_jw) · S_iw^-1 with S_iw^-1 = (1/si, ri^T, -ri^T ti / si)
-        ri_t = np.transpose(ri, (0, 2, 1))
-        se = sa / si
-        re = ra @ ri_t
-        te = ta - (sa / si)[:, None] * np.einsum("eab,eb->ea", ra @ ri_t, ti)
-        res = np.concatenate([Rotation.from_matrix(re).as_rotvec(), te, np.log(se)[:, None]], axis=1)
-        return (res * self.sw[:, None]).ravel()
+        re = ra @ np.transpose(ri, (0, 2, 1))  # · S_iw^-1 = (1/si, ri^T, -ri^T ti / si)
+        te = ta - (sa / si)[:, None] * np.einsum("eab,eb->ea", re, ti)
+        return np.concatenate([Rotation.from_matrix(re).as_rotvec(), te, np.log(sa / si)[:, None]], axis=1)
 
-    def sparsity(self) -> lil_matrix:
-        pattern = lil_matrix((7 * len(self.ei), self.num_params), dtype=np.int8)
-        for e, (a, b) in enumerate(zip(self.ei, self.ej)):
-            for node in (a, b):
-                if self.free[node]:
-                    c = 7 * self.slot[node]
-                    pattern[7 * e:7 * e + 7, c:c + 7] = 1
-        return pattern
+    def _edge_states(self, x: np.ndarray):
+        s, r, c = self.states(x)
+        return [s[self.ei], r[self.ei], c[self.ei], s[self.ej], r[self.ej], c[self.ej]]
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        return (self._edge_residuals(*self._edge_states(x)) * self.sw[:, None]).ravel()
+
+    def jacobian(self, x: np.ndarray, step: float = 1e-6) -> csr_matrix:
+        """Sparse (7E, num_params) Jacobian: each edge's 7 x 7 blocks for its two keyframes by central
+        differences, all edges at once (14 x 2 evaluations of the vectorised edge residual)."""
+        base = self._edge_states(x)
+        rows, cols, vals = [], [], []
+        e_rows = 7 * np.arange(len(self.ei))[:, None] + np.arange(7)[None, :]
+        for side, node in ((0, self.ei), (3, self.ej)):
+            free = self.free[node]
+            for k in range(7):
+                delta = np.zeros((len(node), 7))
+                delta[:, k] = step
+                plus, minus = list(base), list(base)
+                plus[side:side + 3] = _perturb(base[side:side + 3], delta)
+                minus[side:side + 3] = _perturb(base[side:side + 3], -delta)
+                d = (self._edge_residuals(*plus) - self._edge_residuals(*minus)) / (2 * step) * self.sw[:, None]
+                rows.append(e_rows[free].ravel())
+                cols.append(np.repeat(7 * self.slot[node][free] + k, 7))
+                vals.append(d[free].ravel())
+        return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(7 * len(self.ei), self.num_params))
+
+
+def _perturb(state: list[np.ndarray], delta: np.ndarray) -> list[np.ndarray]:
+    """(scales, rotations, centres) of edge endpoints moved by per-edge perturbations (E, 7)."""
+    s, r, c = state
+    return [s * np.exp(delta[:, 6]), Rotation.from_rotvec(delta[:, :3]).as_matrix() @ r, c + delta[:, 3:6]]
 
 
 def optimize_pose_graph(poses: Mapping[int, object], edges: Collection[PoseGraphEdge],
@@ -240,9 +270,11 @@ def optimize_pose_graph(poses: Mapping[int, object], edges: Collection[PoseGraph
     if problem.num_params == 0:
         sol_x, nfev, success, message, final = x0, 0, True, "nothing to optimise", initial_cost
     else:
-        sol = least_squares(problem.residuals, x0, jac_sparsity=problem.sparsity(), method="trf",
+        sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf", tr_solver="lsmr",
                             loss=cfg.loss, f_scale=cfg.loss_scale, max_nfev=cfg.max_evaluations,
-                            ftol=cfg.tolerance, xtol=cfg.tolerance, gtol=cfg.tolerance, x_scale="jac")
+                            ftol=cfg.tolerance, xtol=cfg.tolerance, gtol=cfg.tolerance, x_scale="jac",
+                            # near-exact inner solves: loose LSMR steps stall long loops for hundreds of iterations
+                            tr_options={"atol": 1e-14, "btol": 1e-14, "maxiter": 20 * problem.num_params})
         sol_x, nfev, success, message = sol.x, int(sol.nfev), bool(sol.success), str(sol.message)
         final = 0.5 * float(np.sum(problem.residuals(sol_x) ** 2))
     s, r, t = problem.nodes(sol_x)

@@ -112,8 +112,8 @@ def test_consistent_sim3_graph_recovers_truth_exactly():
 
 def test_known_scale_recovered_on_two_keyframes():
     """One loop edge with scale 2.5 between a fixed and a free keyframe: the free one gets scale 2.5."""
-    sim = pycolmap.Sim3d(2.5, pycolmap.Rotation3d(np.array([0.1, -0.2, 0.3, 0.927]) / np.linalg.norm([0.1, -0.2, 0.3, 0.927])),
-                         np.array([0.3, -1.0, 2.0]))
+    q_xyzw = np.array([0.1, -0.2, 0.3, 0.927])
+    sim = pycolmap.Sim3d(2.5, pycolmap.Rotation3d(q_xyzw / np.linalg.norm(q_xyzw)), np.array([0.3, -1.0, 2.0]))
     m = sim3_from_pycolmap(sim)
     result = optimize_pose_graph({0: np.eye(4), 1: np.eye(4)}, [PoseGraphEdge(1, 0, m, kind="loop")], fixed=0)
     assert result.scales[1] == pytest.approx(2.5, rel=1e-8)
