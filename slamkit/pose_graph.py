@@ -8,8 +8,10 @@ of ``S_ij · S_jw · S_iw^-1`` (identity when consistent) while the gauge keyfra
 keyframes get ``cam_from_world = (R, t / s)`` and points and frames follow their reference keyframe
 (Strasdat et al., "Scale drift-aware large scale monocular SLAM", RSS 2010; Mur-Artal and Tardós, ORB-SLAM2).
 
-Optimizer: ``scipy.optimize.least_squares`` (trust-region, sparse Jacobian pattern) because scipy is already
-installed (through scikit-image) while gtsam 4.3.0's 34 MB wheel also pulls pytest >= 9 into a run-time install.
+Optimizer: ``scipy.optimize.least_squares`` (trust region, sparse Jacobian) by default, because scipy is already
+installed (through scikit-image) while gtsam 4.3.0 (a 34 MB wheel that also requires pytest >= 9 at run time)
+is an optional extra (``pip install slamkit[loop]``); ``PoseGraphConfig(backend="gtsam")`` uses GTSAM's
+Levenberg-Marquardt with sparse Cholesky on ``BetweenFactorSimilarity3`` factors, far faster on large graphs.
 """
 
 from __future__ import annotations
@@ -110,8 +112,14 @@ class PoseGraphConfig:
     """Residual size (radians / metres / log scale) where a robust loss starts to down-weight."""
     tolerance: float = 1e-10
     """Relative cost change (ftol) and step (xtol) at which the solver stops."""
+    backend: Literal["scipy", "gtsam"] = "scipy"
+    """``scipy`` (default install) or ``gtsam`` (optional extra ``loop``; ConfigError when not installed).
+    GTSAM's residual is the Sim(3) logarithm of ``S_ij^-1 · S_iw · S_jw^-1`` (its robust losses are GTSAM's
+    Huber / Cauchy m-estimators with the same ``loss_scale``)."""
 
     def __post_init__(self) -> None:
+        if self.backend not in ("scipy", "gtsam"):
+            raise ConfigError(f"PoseGraphConfig.backend must be scipy or gtsam (got {self.backend!r})")
         if self.loss not in ("linear", "huber", "cauchy"):
             raise ConfigError(f"PoseGraphConfig.loss must be linear, huber or cauchy (got {self.loss!r})")
         if self.max_evaluations < 1 or not self.loss_scale > 0 or not self.tolerance > 0:
@@ -195,7 +203,7 @@ class _Problem:
         f = self.free
         r[f] = Rotation.from_rotvec(p[:, :3]).as_matrix() @ r[f]
         c[f] = c[f] + p[:, 3:6]
-        s[f] = s[f] * np.exp(p[:, 6])
+        s[f] = s[f] * np.exp(np.clip(p[:, 6], -20.0, 20.0))  # a wild trial step must stay finite
         return s, r, c
 
     def nodes(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -264,7 +272,13 @@ def optimize_pose_graph(poses: Mapping[int, object], edges: Collection[PoseGraph
     ids = sorted(int(k) for k in poses)
     _check_graph(ids, list(edges), fixed_set)
     initial = np.stack([as_matrix(poses[k]) for k in ids])
-    problem = _Problem(ids, initial, list(edges), fixed_set)
+    solve = _solve_gtsam if cfg.backend == "gtsam" else _solve_scipy
+    return solve(ids, initial, list(edges), fixed_set, cfg)
+
+
+def _solve_scipy(ids: list[int], initial: np.ndarray, edges: list[PoseGraphEdge], fixed: set[int],
+                 cfg: PoseGraphConfig) -> PoseGraphResult:
+    problem = _Problem(ids, initial, edges, fixed)
     x0 = np.zeros(problem.num_params)
     initial_cost = 0.5 * float(np.sum(problem.residuals(x0) ** 2))
     if problem.num_params == 0:
@@ -278,9 +292,55 @@ def optimize_pose_graph(poses: Mapping[int, object], edges: Collection[PoseGraph
         sol_x, nfev, success, message = sol.x, int(sol.nfev), bool(sol.success), str(sol.message)
         final = 0.5 * float(np.sum(problem.residuals(sol_x) ** 2))
     s, r, t = problem.nodes(sol_x)
-    sims = {k: sim3_matrix(s[n], r[n], t[n]) for n, k in enumerate(ids)}
-    return PoseGraphResult(sims, {k: rigid_from_sim3(m) for k, m in sims.items()},
-                           {k: float(s[n]) for n, k in enumerate(ids)}, initial_cost, final, nfev, success, message)
+    return _result(ids, [sim3_matrix(s[n], r[n], t[n]) for n in range(len(ids))], initial_cost, final, nfev,
+                   success, message)
+
+
+def _result(ids: list[int], sims: list[np.ndarray], initial_cost: float, final_cost: float, evaluations: int,
+            success: bool, message: str) -> PoseGraphResult:
+    by_id = dict(zip(ids, sims))
+    return PoseGraphResult(by_id, {k: rigid_from_sim3(m) for k, m in by_id.items()},
+                           {k: sim3_decompose(m)[0] for k, m in by_id.items()}, initial_cost, final_cost,
+                           evaluations, success, message)
+
+
+def _solve_gtsam(ids: list[int], initial: np.ndarray, edges: list[PoseGraphEdge], fixed: set[int],
+                 cfg: PoseGraphConfig) -> PoseGraphResult:
+    """GTSAM: variables ``X_k = S_kw^-1``, so that ``BetweenFactor(i, j)`` measures ``X_i^-1 X_j = S_ij``.
+    GTSAM's ``Similarity3(R, t, s)`` maps ``x -> s (R x + t)``: our (s, R, t) is ``Similarity3(R, t / s, s)``."""
+    try:
+        import gtsam  # optional extra "loop"
+    except ImportError as e:
+        raise ConfigError("PoseGraphConfig.backend='gtsam' needs the gtsam package (pip install slamkit[loop])") from e
+
+    def to_gtsam(m: np.ndarray):
+        s, r, t = sim3_decompose(m)
+        return gtsam.Similarity3(gtsam.Rot3(r), t / s, s)
+
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    for k, m in zip(ids, initial):
+        values.insert(k, to_gtsam(sim3_inverse(m)))
+    for e in edges:
+        noise = gtsam.noiseModel.Isotropic.Sigma(7, 1.0 / np.sqrt(e.weight))
+        if cfg.loss != "linear":
+            estimator = gtsam.noiseModel.mEstimator.Huber if cfg.loss == "huber" else gtsam.noiseModel.mEstimator.Cauchy
+            noise = gtsam.noiseModel.Robust.Create(estimator.Create(cfg.loss_scale), noise)
+        graph.add(gtsam.BetweenFactorSimilarity3(e.i, e.j, to_gtsam(e.i_from_j), noise))
+    for k in sorted(fixed):
+        graph.add(gtsam.NonlinearEqualitySimilarity3(k, values.atSimilarity3(k)))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(cfg.max_evaluations)
+    params.setRelativeErrorTol(cfg.tolerance)
+    params.setAbsoluteErrorTol(cfg.tolerance)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    solution = optimizer.optimize()
+    sims = []
+    for k in ids:
+        x = solution.atSimilarity3(k)
+        sims.append(sim3_inverse(sim3_matrix(x.scale(), x.rotation().matrix(), x.scale() * x.translation())))
+    iterations = int(optimizer.iterations())
+    return _result(ids, sims, float(graph.error(values)), float(graph.error(solution)), iterations,
+                   iterations < cfg.max_evaluations, f"gtsam Levenberg-Marquardt, {iterations} iterations")
 
 
 def _check_graph(ids: list[int], edges: list[PoseGraphEdge], fixed: set[int]) -> None:

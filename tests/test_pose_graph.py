@@ -8,10 +8,19 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from slamkit.errors import ConfigError
-from slamkit.pose_graph import (PoseGraphEdge, correct_points, loop_edge, optimize_pose_graph, propagate_to_frames,
-                                relative_edges, sim3_decompose, sim3_from_pycolmap, sim3_inverse, sim3_matrix)
+from slamkit.pose_graph import (PoseGraphConfig, PoseGraphEdge, correct_points, loop_edge, optimize_pose_graph,
+                                propagate_to_frames, relative_edges, sim3_decompose, sim3_from_pycolmap, sim3_inverse,
+                                sim3_matrix)
 
 N = 36
+
+
+@pytest.fixture(params=["scipy", "gtsam"])
+def config(request) -> PoseGraphConfig:
+    """Both backends; gtsam (optional extra ``loop``) is skipped where it is not installed."""
+    if request.param == "gtsam":
+        pytest.importorskip("gtsam", reason="gtsam (optional extra 'loop') is not installed")
+    return PoseGraphConfig(backend=request.param)
 
 
 def _centre(cam_from_world: np.ndarray) -> np.ndarray:
@@ -71,7 +80,7 @@ def _odometry_graph(est: dict[int, np.ndarray]) -> list[PoseGraphEdge]:
     return relative_edges(est, pairs)
 
 
-def test_loop_with_drift_is_corrected():
+def test_loop_with_drift_is_corrected(config):
     """Odometry drifts (0.2 degree, 0.5 % scale and 2 mm per keyframe, growing along the loop); one loop edge
     carries the true Sim(3) between the last and the first keyframe. The pose graph cannot know where along
     the loop the drift happened, so it spreads the loop error over the edges: the trajectory becomes
@@ -83,7 +92,7 @@ def test_loop_with_drift_is_corrected():
     q = N - 1
     tgt_from_src = np.linalg.inv(gt[q]) @ sim3_matrix(1.0 / scales[q], np.eye(3), np.zeros(3)) @ est[q]
     edges = _odometry_graph(est) + [loop_edge(q, 0, est[q], est[0], tgt_from_src)]
-    result = optimize_pose_graph(est, edges, fixed=0)
+    result = optimize_pose_graph(est, edges, fixed=0, config=config)
     assert result.success and result.final_cost < 0.05 * result.initial_cost
     pos_before, rot_before = _errors(est, gt)
     pos_after, rot_after = _errors(result.cam_from_world, gt)
@@ -96,7 +105,7 @@ def test_loop_with_drift_is_corrected():
     assert result.scales[q] == pytest.approx(scales[q], rel=0.02) and result.scales[0] == 1.0
 
 
-def test_consistent_sim3_graph_recovers_truth_exactly():
+def test_consistent_sim3_graph_recovers_truth_exactly(config):
     """Edges that are the true relative Sim(3)s (scales included) from drifted initial poses: the optimum
     is the truth up to solver precision."""
     gt = _circle()
@@ -104,18 +113,19 @@ def test_consistent_sim3_graph_recovers_truth_exactly():
     truth = _sim_truth(gt, scales)
     pairs = [(i, i - 1) for i in range(1, N)] + [(N - 1, 0), (N // 2, 0)]
     edges = [PoseGraphEdge(i, j, truth[i] @ sim3_inverse(truth[j])) for i, j in pairs]
-    result = optimize_pose_graph(est, edges, fixed=[0])
+    result = optimize_pose_graph(est, edges, fixed=[0], config=config)
     for k in range(N):
         np.testing.assert_allclose(result.sim_from_world[k], truth[k], atol=1e-6)
         assert result.scales[k] == pytest.approx(scales[k], rel=1e-7)
 
 
-def test_known_scale_recovered_on_two_keyframes():
+def test_known_scale_recovered_on_two_keyframes(config):
     """One loop edge with scale 2.5 between a fixed and a free keyframe: the free one gets scale 2.5."""
     q_xyzw = np.array([0.1, -0.2, 0.3, 0.927])
     sim = pycolmap.Sim3d(2.5, pycolmap.Rotation3d(q_xyzw / np.linalg.norm(q_xyzw)), np.array([0.3, -1.0, 2.0]))
     m = sim3_from_pycolmap(sim)
-    result = optimize_pose_graph({0: np.eye(4), 1: np.eye(4)}, [PoseGraphEdge(1, 0, m, kind="loop")], fixed=0)
+    result = optimize_pose_graph({0: np.eye(4), 1: np.eye(4)}, [PoseGraphEdge(1, 0, m, kind="loop")], fixed=0,
+                                 config=config)
     assert result.scales[1] == pytest.approx(2.5, rel=1e-8)
     np.testing.assert_allclose(result.sim_from_world[1], m, atol=1e-8)
     s, r, t = sim3_decompose(result.sim_from_world[1])
@@ -124,12 +134,12 @@ def test_known_scale_recovered_on_two_keyframes():
     np.testing.assert_array_equal(result.cam_from_world[0], np.eye(4))
 
 
-def test_frames_and_points_follow_their_keyframe():
+def test_frames_and_points_follow_their_keyframe(config):
     gt = _circle()
     est, scales = _drifted(gt)
     truth = _sim_truth(gt, scales)
     edges = [PoseGraphEdge(i, j, truth[i] @ sim3_inverse(truth[j])) for i, j in [(i, i - 1) for i in range(1, N)]]
-    result = optimize_pose_graph(est, edges, fixed=0)
+    result = optimize_pose_graph(est, edges, fixed=0, config=config)
     # a non-keyframe between keyframes 20 and 21, and points seen by keyframe 20, in the drifted map
     k = 20
     rel_true = Rotation.from_rotvec([0.0, 0.05, 0.0]).as_matrix()
@@ -158,3 +168,5 @@ def test_bad_graphs_are_config_errors():
         optimize_pose_graph(poses, [], fixed=0)
     with pytest.raises(ConfigError, match="pose"):
         relative_edges({0: np.eye(4), 1: np.zeros((2, 2))}, [(0, 1)])
+    with pytest.raises(ConfigError, match="backend"):
+        PoseGraphConfig(backend="g2o")
