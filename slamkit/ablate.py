@@ -20,17 +20,29 @@ shared file system.
 from __future__ import annotations
 
 import hashlib
+import io
 import itertools
 import json
 import math
+import multiprocessing
 import os
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import pandas as pd
+import pycolmap
+
+from .config import ALIASES, SlamConfig
 from .errors import ConfigError, OutputError, SlamkitError
+from .eval import ate, rpe
+from .io import atomic_write_bytes, atomic_write_text
+from .io.run import _ground_truth as gt_of_run
+from .pipeline import Slam
+from .sources import open_source
 
 __all__ = ["Grid", "parse_grid", "Task", "plan", "run_one", "sweep", "load_results", "markdown_table",
            "RESULT_COLUMNS"]
@@ -74,7 +86,6 @@ class Grid:
 
 
 def _config_value(cfg, name: str) -> Any:
-    from .config import ALIASES
 
     if name == "features":  # a feature pipeline name (xfeat-lighterglue) also sets the matcher: keep the name
         return cfg.feature_pipeline
@@ -89,7 +100,6 @@ def parse_grid(spec: Sequence[str] | str | Mapping[str, Any]) -> Grid:
     spaces, or a mapping ``{name: values}``) -> :class:`Grid`, every value checked and converted with
     :meth:`SlamConfig.with_overrides`. ConfigError naming the parameter for an unknown name, a value of
     the wrong type or out of range, a repeated name or an item without ``=``."""
-    from .config import SlamConfig
 
     if isinstance(spec, str):
         spec = spec.split()
@@ -118,8 +128,7 @@ def parse_grid(spec: Sequence[str] | str | Mapping[str, Any]) -> Grid:
             try:
                 typed.append(_config_value(base.with_overrides(**{name: v}), name))
             except ConfigError as e:
-                from .config import ALIASES
-
+            
                 raise ConfigError(f"grid parameter {name}={v!r}: {e} (short names: {', '.join(ALIASES)})") from None
         params.append((name, tuple(dict.fromkeys(typed))))
     return Grid(tuple(params))
@@ -161,7 +170,6 @@ def plan(sources: Iterable[str], grid: Grid, repeats: int = 1) -> list[Task]:
 
 
 def _ground_truth(slam):
-    from .io.run import _ground_truth as gt_of_run
 
     return gt_of_run(slam)
 
@@ -182,13 +190,9 @@ def run_one(source_spec: str, overrides: Mapping[str, Any] | Iterable[tuple[str,
         row[c] = math.nan
     t0 = time.perf_counter()
     try:
-        import pycolmap
 
         pycolmap.logging.minloglevel = 2
-        from .config import SlamConfig
-        from .pipeline import Slam
-        from .sources import open_source
-
+    
         cfg = SlamConfig().with_overrides(**overrides, seed=int(seed))
         slam = Slam(open_source(str(source_spec)), cfg)
         slam.run()
@@ -206,7 +210,6 @@ def run_one(source_spec: str, overrides: Mapping[str, Any] | Iterable[tuple[str,
         if gt is None or len(gt) == 0:
             row["error"] = "no ground truth: ATE not computed"
         else:
-            from .eval import ate, rpe
 
             try:
                 a = ate(gt, slam.trajectory())
@@ -296,9 +299,7 @@ def sweep(sources: Iterable[str] | str, grid: Grid | Sequence[str] | Mapping[str
     Writes ``OUT/results.csv``, ``results.parquet`` (when pyarrow is installed), ``results.md`` and
     ``effects.png`` (one panel per parameter) unless ``write_outputs`` is False.
     """
-    import pandas as pd
 
-    from .io import atomic_write_text
 
     if isinstance(sources, str):
         sources = [sources]
@@ -351,8 +352,6 @@ def _execute(todo: list[Task], executor, workers: int | None, finished: Callable
             finished(task, _run_task(task))
         return
     if executor is None or executor == "local":
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
 
         n = max(1, min(workers or os.cpu_count() or 1, len(todo)))
         pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
@@ -371,16 +370,15 @@ def _execute(todo: list[Task], executor, workers: int | None, finished: Callable
 
 def _collect(executor, todo: list[Task], finished: Callable[[Task, dict], None]) -> None:
     """Submit every task and hand each result over as soon as it arrives (persisted by ``finished``)."""
+    completed = as_completed
     if _is_dask_client(executor):
-        from distributed import as_completed
+        from distributed import as_completed as completed  # the dask extra: imported only for a cluster
 
         futures = {executor.submit(_run_task, t, key=f"slamkit-run-{t.key}", pure=False): t for t in todo}
     else:
-        from concurrent.futures import as_completed
-
         futures = {executor.submit(_run_task, t): t for t in todo}
     try:
-        for fut in as_completed(list(futures)):
+        for fut in completed(list(futures)):
             task = futures[fut]
             try:
                 row = fut.result()
@@ -410,7 +408,6 @@ def connect(address: str):
 
 def load_results(out_dir: str | os.PathLike):
     """The DataFrame of every run JSON under ``OUT/runs`` (for a sweep still running or interrupted)."""
-    import pandas as pd
 
     rows = [r for p in sorted(Path(out_dir, "runs").glob("*.json")) if (r := _read_cached(p)) is not None]
     return pd.DataFrame(rows)
@@ -450,12 +447,10 @@ def summarize(df, params: Sequence[str]):
 
 def write_results(df, out_dir: str | os.PathLike, params: Sequence[str]) -> dict[str, Path]:
     """results.csv, results.parquet (if pyarrow), results.md and effects.png in ``out_dir``."""
-    from .io import atomic_write_bytes, atomic_write_text
 
     out_dir = Path(out_dir)
     paths = {"csv": atomic_write_text(out_dir / "results.csv", df.to_csv(index=False))}
     try:
-        import io
 
         buf = io.BytesIO()
         df.to_parquet(buf, index=False)
@@ -472,7 +467,7 @@ def write_results(df, out_dir: str | os.PathLike, params: Sequence[str]) -> dict
     if len(failed):
         md += ["\n## Failed runs\n", markdown_table(failed, ["source", *params, "seed", "status", "error"])]
     if (df["status"] == STATUS_OK).any() and params:
-        from .eval.plots import plot_effects
+        from .eval.plots import plot_effects  # matplotlib only when a sweep is plotted (cli imports this module)
 
         varied = [p for p in params if df[p].nunique(dropna=False) > 1] or list(params)
         paths["effects"] = plot_effects(df, varied, out_dir / "effects.png")

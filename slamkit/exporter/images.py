@@ -14,6 +14,7 @@ import shutil
 from pathlib import Path
 from typing import Callable
 
+import cv2
 import numpy as np
 
 from ..errors import OutputError, SlamkitError
@@ -68,8 +69,6 @@ def _source_path(run: SavedRun, source: FrameSource, frame: PosedFrame) -> Path 
 def write_image(run: SavedRun, source: FrameSource, frame: PosedFrame, camera: ExportCamera,
                 out: Path) -> Frame | None:
     """Write one frame to ``out`` (copy or PNG); returns the decoded frame (None for a copied JPEG)."""
-    import cv2
-
     copy_from = _source_path(run, source, frame) if not camera.undistort else None
     if copy_from is not None and out.suffix.lower() == copy_from.suffix.lower():
         shutil.copyfile(copy_from, out)

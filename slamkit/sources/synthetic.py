@@ -48,12 +48,15 @@ import tempfile
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..camera import Intrinsics
-from ..errors import CalibrationError, ConfigError, SourceError
+from ..errors import CalibrationError, ConfigError, FormatError, SourceError
+from ..io.trajectory import read_tum, write_tum
 from ..types import Trajectory
 from .base import FrameSource, ImageListSource, select
+from .folder import image_size, resolve_camera
 from .motions import (DEFAULT_FRAMES, MOTIONS, _check_positive, default_motion, forward, handheld,  # noqa: F401
                       loop, orbit, rotation, sideways, translate_then_rotate)
 from .scene import Rendering, Scene, default_room, project
@@ -138,8 +141,6 @@ class SyntheticSource(FrameSource):
 
     def image(self, i: int) -> np.ndarray:
         """(H, W, 3) uint8 BGR image of delivered frame ``i`` (with the source's noise)."""
-        import cv2
-
         img = self.scene.render(self.gt_poses[i], self.camera).image
         if self.noise > 0:
             # Gaussian noise, rounded to grey levels: a window of a noise field drawn once from the seed, at
@@ -258,10 +259,6 @@ def write_tum_sequence(source: FrameSource, folder: str | Path, *, image_format:
     ``depth/<timestamp>.png`` (uint16, metres x 5000, 0 = none, as TUM) and ``depth.txt``. Timestamps are
     written with 6 decimals, the same string in every file.
     """
-    import cv2
-
-    from ..io.trajectory import write_tum
-
     if image_format not in ("png", "jpg"):
         raise ConfigError(f"image_format must be 'png' or 'jpg' (got {image_format!r})")
     if depth and not isinstance(source, SyntheticSource):
@@ -373,8 +370,6 @@ def ensure_default_sequence() -> Path:
 def open_tum_sequence(folder: str | Path, *, name: str | None = None, frame_skip: int = 1,
                       max_frames: int | None = None) -> ImageListSource:
     """Open a folder written by :func:`write_tum_sequence` (its ``camera.json`` gives the intrinsics)."""
-    from ..io.trajectory import read_tum
-
     folder = Path(folder)
     for f in ("rgb.txt", "camera.json"):
         if not (folder / f).is_file():
@@ -391,8 +386,6 @@ def open_tum_sequence(folder: str | Path, *, name: str | None = None, frame_skip
             continue
         parts = line.split()
         if len(parts) != 2:
-            from ..errors import FormatError
-
             raise FormatError(folder / "rgb.txt", lineno, "expected 'timestamp filename'")
         stamps.append(float(parts[0]))
         names.append(parts[1])
@@ -409,8 +402,6 @@ def open_tum_sequence(folder: str | Path, *, name: str | None = None, frame_skip
         gt = gt[keep]
     paths = [folder / names[i] for i in keep]
     if paths and paths[0].is_file():  # the intrinsics must fit the images (checked on the first, header only)
-        from .folder import image_size, resolve_camera
-
         resolve_camera(camera, *image_size(paths[0]), where=f"{folder / 'camera.json'} with the image {paths[0]}")
     return ImageListSource(name=name or folder.name, camera=camera, paths=paths, timestamps=t[keep], frame_ids=keep,
                            gt_poses=gt)
