@@ -294,8 +294,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     handler = _SignalsInterrupt()
     previous = handler.install()
+    hook = sys.unraisablehook
+    sys.unraisablehook = handler.unraisable
     try:
-        return args.func(args)
+        code = args.func(args)
+        # a signal that landed in a __del__ (e.g. a progress bar's) could not propagate: it still ends the command
+        return handler.swallowed[0].exit_code if handler.swallowed else code
     except SlamkitError as e:
         handler.active = False
         print(f"slamkit: error: {e}", file=sys.stderr)
@@ -306,6 +310,7 @@ def main(argv: list[str] | None = None) -> int:
         return e.exit_code
     finally:
         handler.active = False
+        sys.unraisablehook = hook
         if argv is not None:  # called from Python: give the handlers back
             for s, h in previous.items():
                 signal.signal(s, h if h is not None else signal.SIG_DFL)
@@ -320,10 +325,19 @@ class _SignalsInterrupt:
 
     def __init__(self):
         self.active = True
+        self.swallowed: list[Interrupted] = []
+        """Interruptions raised where Python cannot propagate them (a ``__del__``), kept instead of printed."""
 
     def __call__(self, signum: int, frame) -> None:
         if self.active:
             raise_interrupted(signum, frame)
+
+    def unraisable(self, unraisable) -> None:
+        """``sys.unraisablehook`` while a command runs: an :class:`Interrupted` is kept (no traceback)."""
+        if isinstance(unraisable.exc_value, Interrupted):
+            self.swallowed.append(unraisable.exc_value)
+        else:
+            sys.__unraisablehook__(unraisable)
 
     def install(self) -> dict:
         previous = {}

@@ -106,6 +106,7 @@ class Slam:
         self.camera = self.source.camera
         if c.camera:  # the user's intrinsics instead of the source's (or its guess)
             self.camera = Intrinsics.parse(c.camera, self.camera.width, self.camera.height)
+        extractor = create_extractor(c.features, **c.extractor_options())  # first: its missing weights first
         matcher = None if c.matcher == "nn" else create_matcher(c.matcher, **c.matcher_options())  # "nn": per stage
         self.tracker = Tracker(replace(c.tracker, random_seed=c.seed))
         self.motion_model = MotionModel()
@@ -119,8 +120,7 @@ class Slam:
                                                            c.ba.local_window, max(RETRACK_BELOW_KEYFRAMES, 4)))
         self.initializer = Initializer(self.camera, replace(c.initializer, random_seed=c.seed), matcher)
         self.indices = np.arange(0, len(self.source), c.frame_skip)[: c.max_frames]
-        self.loader.configure(self.indices, create_extractor(c.features, **c.extractor_options()), self.camera,
-                              c.prefetch)
+        self.loader.configure(self.indices, extractor, self.camera, c.prefetch)
         self.state = SlamState()
         """Everything the run has done (records, segments, cursor, counters): what a session saves."""
         self.last_frame: Frame | None = None

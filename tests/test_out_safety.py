@@ -18,6 +18,7 @@ from pathlib import Path
 import cv2
 import pytest
 
+import slamkit.cli
 from slamkit.cli import main
 from slamkit.config import SlamConfig
 from slamkit.errors import OutputError
@@ -289,6 +290,23 @@ def test_repeated_signals_leave_the_old_run_or_the_new_one_and_say_which(tmp_pat
     else:
         assert any(s in last for s in ("holds this run", "interrupted after frame")), last
         assert save_id(out) != old_id and 25 < frames < 60
+
+
+def test_a_signal_landing_in_a_destructor_still_ends_the_command_without_a_traceback(monkeypatch, capfd):
+    """A SIGTERM whose handler runs inside a ``__del__`` (a progress bar being collected as a command ends) is
+    an exception Python cannot propagate: the command still exits 143, and no traceback is printed."""
+
+    class SignalsWhenCollected:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)  # the handler runs here, inside __del__
+
+    def presets(args):
+        SignalsWhenCollected()  # collected at once
+        return 0
+
+    monkeypatch.setattr(slamkit.cli, "cmd_presets", presets)
+    assert main(["presets"]) == 143
+    assert "Traceback" not in capfd.readouterr().err
 
 
 def test_stop_request_keeps_ignored_signals_ignored():
