@@ -353,7 +353,8 @@ class Slam:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
                                                             tr.ref_matches)
         t = time.perf_counter()
-        bres = self.bundle_adjuster.step(slam_map, mres.image_id)
+        bres = self.bundle_adjuster.step(slam_map, mres.image_id,
+                                         self.config.mapper.starved_tri_angle_deg if mres.starved else None)
         timings["ba"] = time.perf_counter() - t
         if bres.normalization is not None:
             st.apply_normalization(seg, float(bres.normalization.scale))
