@@ -183,6 +183,8 @@ PRESETS: dict[str, dict[str, Any]] = {
     "accurate": {"num_features": 3000, "flow_threshold": 0.03, "ba.local_window": 10, "mapper.neighbors": 6,
                  "ba.global_max_keyframes": 600},
     "sift": {"features": "sift"},
+    # driving and other fast forward motion: starving keyframes triangulate down to 0.5 deg (issue 17)
+    "driving": {"mapper.starved_points": 150},
     # learned feature pipelines (pip install 'slamkit[learned]'): the FEATURE_PIPELINES below
     "xfeat": {"features": "xfeat"},
     "xfeat-lighterglue": {"features": "xfeat-lighterglue"},

@@ -345,7 +345,7 @@ class Slam:
         seg = st.segment
         slam_map = seg.slam_map
         ff = FrameFeatures(ff.index, ff.frame_id, ff.timestamp, ff.features, ff.keypoints, ff.colors,
-                           thumbnail(self.last_frame, ff.index, self.config.thumbnail_width))  # no signature: below
+                           thumbnail(self.last_frame, ff.index, self.config.thumbnail_width), ff.signature)
         t = time.perf_counter()
         mres = self.mapper.step(slam_map, ff, tr.cam_from_world, tr.point2D_idxs, tr.point3D_ids, st.last_keyframe)
         timings["map"] = time.perf_counter() - t
@@ -353,7 +353,8 @@ class Slam:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
                                                             tr.ref_matches)
         t = time.perf_counter()
-        bres = self.bundle_adjuster.step(slam_map, mres.image_id)
+        bres = self.bundle_adjuster.step(slam_map, mres.image_id,
+                                         self.config.mapper.starved_tri_angle_deg if mres.starved else None)
         timings["ba"] = time.perf_counter() - t
         if bres.normalization is not None:
             st.apply_normalization(seg, float(bres.normalization.scale))
@@ -367,7 +368,7 @@ class Slam:
         if culled:
             message += f"; culled redundant keyframe{'s' if len(culled) > 1 else ''} " + ", ".join(map(str, culled))
         st.last_keyframe = mres.image_id
-        if ff.signature is not None:  # never here (ff is the copy above): only initial keyframes have signatures
+        if ff.signature is not None:  # every keyframe can relocalize a lost frame
             seg.signatures[mres.image_id] = ff.signature
         st.add_keyframe(record, mres.image_id)
         st.points_at_last_keyframe = slam_map.reconstruction.image(mres.image_id).num_points3D

@@ -41,7 +41,8 @@ class BundleAdjustmentConfig:
     max_reproj_error_px: float = 4.0
     """Points with a larger reprojection error are filtered after BA."""
     min_tri_angle_deg: float = 1.5
-    """Points with a smaller triangulation angle are filtered after BA."""
+    """Points with a smaller triangulation angle are filtered after BA (after a starving keyframe's BA:
+    ``mapper.starved_tri_angle_deg``, so its points survive it)."""
     loss: str = "soft_l1"
     """Robust loss: trivial, soft_l1, cauchy or huber (scale 1 px)."""
     normalize: bool = True
@@ -94,14 +95,34 @@ class BundleAdjuster:
         config.validate()
         self.config = config
         self._keyframes_at_last_global = 0
+        self._steps = 0  # keyframes adjusted (step calls)
+        self._starved = (0, 0.0)  # (step of the last starving keyframe, its angle)
 
-    def state(self) -> dict[str, int]:
-        """What the adjuster remembers between keyframes (when the last global BA ran), for sessions."""
-        return {"keyframes_at_last_global": int(self._keyframes_at_last_global)}
+    def state(self) -> dict[str, float]:
+        """What the adjuster remembers between keyframes (when the last global BA ran, the last starving
+        keyframe), for sessions."""
+        return {"keyframes_at_last_global": int(self._keyframes_at_last_global),
+                "steps": int(self._steps), "last_starved_step": int(self._starved[0]),
+                "starved_tri_angle_deg": float(self._starved[1])}
 
-    def restore(self, state: dict[str, int]) -> None:
+    def restore(self, state: dict[str, float]) -> None:
         """Continue from :meth:`state` of another adjuster (a resumed session)."""
         self._keyframes_at_last_global = int(state["keyframes_at_last_global"])
+        self._steps = int(state.get("steps", 0))  # sessions saved before these keys: no starving keyframe
+        self._starved = (int(state.get("last_starved_step", 0)), float(state.get("starved_tri_angle_deg", 0)))
+
+    def filter_angle(self, starved_angle: float | None = None) -> float:
+        """The triangulation angle points are filtered by after this BA, degrees: ``config.min_tri_angle_deg``,
+        or a starving keyframe's smaller angle (``starved_angle``, ``mapper.starved_tri_angle_deg``) for the
+        BAs of the ``local_window`` keyframes from it, so its points live until later keyframes see them
+        with more parallax. Counts one more keyframe."""
+        self._steps += 1
+        if starved_angle is not None:
+            self._starved = (self._steps, float(starved_angle))
+        last, angle = self._starved
+        if last > 0 and self._steps - last < self.config.local_window:
+            return min(angle, self.config.min_tri_angle_deg)
+        return self.config.min_tri_angle_deg
 
     def _options(self, iterations: int) -> pycolmap.BundleAdjustmentOptions:
         c = self.config
@@ -113,13 +134,16 @@ class BundleAdjuster:
         return (c.global_min_keyframes <= n <= c.global_max_keyframes
                 and n >= (1 + c.global_growth) * max(self._keyframes_at_last_global, 1))
 
-    def step(self, slam_map: SlamMap, image_id: int) -> BundleAdjustmentResult:
-        """Adjust after keyframe ``image_id`` was inserted: global when due, else local."""
+    def step(self, slam_map: SlamMap, image_id: int, starved_angle: float | None = None) -> BundleAdjustmentResult:
+        """Adjust after keyframe ``image_id`` was inserted: global when due, else local. starved_angle: the
+        keyframe's smaller triangulation angle when it was starving (see :meth:`filter_angle`), else None."""
+        min_tri_angle_deg = self.filter_angle(starved_angle)
         if self.global_due(slam_map):
-            return self.adjust_global(slam_map)
-        return self.adjust_local(slam_map, image_id)
+            return self.adjust_global(slam_map, min_tri_angle_deg=min_tri_angle_deg)
+        return self.adjust_local(slam_map, image_id, min_tri_angle_deg)
 
-    def adjust_local(self, slam_map: SlamMap, image_id: int) -> BundleAdjustmentResult:
+    def adjust_local(self, slam_map: SlamMap, image_id: int, min_tri_angle_deg: float | None = None
+                     ) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
         window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
         cfg = pycolmap.BundleAdjustmentConfig()
@@ -143,11 +167,12 @@ class BundleAdjuster:
             cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
             self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
-        merged, completed, filtered = self._maintain(slam_map, set(window))
+        merged, completed, filtered = self._maintain(slam_map, set(window), min_tri_angle_deg)
         return BundleAdjustmentResult("local", len(window), len(points), str(summary.termination_type).split(".")[-1],
                                       merged, completed, filtered, time.perf_counter() - t0, None)
 
-    def adjust_global(self, slam_map: SlamMap, normalize: bool | None = None) -> BundleAdjustmentResult:
+    def adjust_global(self, slam_map: SlamMap, normalize: bool | None = None,
+                      min_tri_angle_deg: float | None = None) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
         rec = slam_map.reconstruction
         cfg = pycolmap.BundleAdjustmentConfig()
@@ -158,7 +183,7 @@ class BundleAdjuster:
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
             self._options(self.config.global_iterations), cfg, rec).solve()
-        merged, completed, filtered = self._maintain(slam_map, None)
+        merged, completed, filtered = self._maintain(slam_map, None, min_tri_angle_deg)
         self._keyframes_at_last_global = slam_map.num_keyframes
         sim = None
         if self.config.normalize if normalize is None else normalize:
@@ -167,8 +192,10 @@ class BundleAdjuster:
                                       str(summary.termination_type).split(".")[-1], merged, completed, filtered,
                                       time.perf_counter() - t0, sim)
 
-    def _maintain(self, slam_map: SlamMap, image_ids: set[int] | None) -> tuple[int, int, int]:
+    def _maintain(self, slam_map: SlamMap, image_ids: set[int] | None, min_tri_angle_deg: float | None = None
+                  ) -> tuple[int, int, int]:
         """Complete and merge modified tracks, then filter (COLMAP's IterativeLocalRefinement order)."""
+        angle = self.config.min_tri_angle_deg if min_tri_angle_deg is None else min_tri_angle_deg
         tri, opts = slam_map.triangulator, slam_map.triangulation
         modified = set(sorted(tri.get_modified_points3D()))  # order independent of the set's history
         completed = tri.complete_tracks(opts, modified) if modified else 0
@@ -176,9 +203,8 @@ class BundleAdjuster:
         tri.clear_modified_points3D()
         obs = slam_map.observations
         if image_ids is None:
-            filtered = obs.filter_all_points3D(self.config.max_reproj_error_px, self.config.min_tri_angle_deg)
+            filtered = obs.filter_all_points3D(self.config.max_reproj_error_px, angle)
         else:
-            filtered = obs.filter_points3D_in_images(self.config.max_reproj_error_px,
-                                                     self.config.min_tri_angle_deg, image_ids)
+            filtered = obs.filter_points3D_in_images(self.config.max_reproj_error_px, angle, image_ids)
         slam_map.changed()
         return merged, completed, filtered

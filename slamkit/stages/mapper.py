@@ -25,6 +25,21 @@ class MapperConfig:
     """Matches to neighbours must satisfy the epipolar constraint of the known poses (Sampson, pixels)."""
     min_keyframe_points: int = 50
     """A keyframe seeing fewer map points after triangulation is deregistered (seed §3.5)."""
+    min_tri_angle_deg: float = 1.5
+    """New points need a triangulation angle of at least this, degrees (the map's
+    ``IncrementalTriangulatorOptions.min_angle``; COLMAP's default)."""
+    starved_points: int = 0
+    """A keyframe that sees fewer map points than this after triangulation is a starving map: its
+    remaining correspondences are triangulated again with ``starved_tri_angle_deg`` (0 disables; the
+    ``driving`` preset uses 150). In forward motion (KITTI at 1-2 m per frame) the points ahead see little
+    parallax between neighbouring keyframes; with COLMAP's 1.5 degrees only the points near the image
+    border are mapped, they leave the view within a frame or two, and tracking is lost. Off by default:
+    on the hard-motion suite it costs a little at KITTI's natural rate and on fast synthetic turns
+    (benchmarks/README.md, "Hard-motion suite (issue 17)", "Tracking work")."""
+    starved_tri_angle_deg: float = 0.5
+    """The smaller triangulation angle of a starving keyframe, degrees (see ``starved_points``); the
+    bundle adjustment after it filters points by this angle too (``ba.min_tri_angle_deg`` otherwise), or it
+    would remove them again. Lowering both angles for every keyframe instead cost 7-Scenes accuracy."""
     matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.8, mutual=True))
     compact_dropped: int = 100
     """Images no longer keyframes (culled or rejected) stay in pycolmap's Reconstruction and correspondence
@@ -40,6 +55,11 @@ class MapperConfig:
             raise ConfigError(f"mapper.max_epipolar_error_px must be > 0 (got {self.max_epipolar_error_px})")
         if self.min_keyframe_points < 0:
             raise ConfigError(f"mapper.min_keyframe_points must be >= 0 (got {self.min_keyframe_points})")
+        if not 0 <= self.starved_tri_angle_deg <= self.min_tri_angle_deg < 45:
+            raise ConfigError("mapper: 0 <= starved_tri_angle_deg <= min_tri_angle_deg < 45 degrees needed (got "
+                              f"{self.starved_tri_angle_deg}, {self.min_tri_angle_deg})")
+        if self.starved_points < 0:
+            raise ConfigError(f"mapper.starved_points must be >= 0 (got {self.starved_points})")
 
 
 @dataclass(frozen=True)
@@ -54,6 +74,8 @@ class MappingResult:
     """Observations added by triangulation (new and continued tracks)."""
     neighbors: tuple[int, ...]
     num_correspondences: int
+    starved: bool = False
+    """The keyframe was triangulated again with ``starved_tri_angle_deg`` (see ``starved_points``)."""
 
     @property
     def registered(self) -> bool:
@@ -100,14 +122,29 @@ class Mapper:
             total += len(pairs)
         slam_map.register(iid, rigid_from_matrix(cam_from_world))
         slam_map.add_observations(iid, point2D_idxs, point3D_ids)
-        new = slam_map.triangulate(iid)
-        n_points = slam_map.reconstruction.image(iid).num_points3D
+        new, n_points, starved = self._triangulate(slam_map, iid)
         if n_points < c.min_keyframe_points:
             slam_map.deregister(iid)
             return MappingResult("rejected", f"sees {n_points} map points < {c.min_keyframe_points}", iid,
-                                 n_points, new, tuple(neighbors), total)
-        return MappingResult("registered", f"{n_points} map points, {new} triangulated observations", iid,
-                             n_points, new, tuple(neighbors), total)
+                                 n_points, new, tuple(neighbors), total, starved)
+        how = f" (starving: triangulated down to {c.starved_tri_angle_deg:g} deg)" if starved else ""
+        return MappingResult("registered", f"{n_points} map points, {new} triangulated observations{how}", iid,
+                             n_points, new, tuple(neighbors), total, starved)
+
+    def _triangulate(self, slam_map: SlamMap, iid: int) -> tuple[int, int, bool]:
+        """Triangulate through keyframe ``iid`` with ``min_tri_angle_deg``, again with
+        ``starved_tri_angle_deg`` when it then sees fewer than ``starved_points`` map points. Returns
+        (triangulated observations, map points the keyframe sees, whether it was starving)."""
+        c, opts = self.config, slam_map.triangulation
+        opts.min_angle = c.min_tri_angle_deg
+        new = slam_map.triangulate(iid)
+        n_points = slam_map.reconstruction.image(iid).num_points3D
+        if n_points >= c.starved_points or c.starved_tri_angle_deg >= c.min_tri_angle_deg:
+            return new, n_points, False
+        opts.min_angle = c.starved_tri_angle_deg
+        new += slam_map.triangulate(iid)
+        opts.min_angle = c.min_tri_angle_deg
+        return new, slam_map.reconstruction.image(iid).num_points3D, True
 
     def _correspondences(self, slam_map: SlamMap, n: int, frame: FrameFeatures, cam_from_world: np.ndarray,
                          point2D_idxs: np.ndarray, point3D_ids: np.ndarray, tracked: np.ndarray, K: np.ndarray

@@ -1,0 +1,91 @@
+"""Tracking under fast motion (issue 17): synthetic sequences with exact ground truth tracked end to end, a
+lost-then-recovered camera rejoining the same map, and KITTI 07 at frame skip 2 (skipped when
+../shared is absent)."""
+
+from __future__ import annotations
+
+import pycolmap
+import pytest
+
+from slamkit.config import SlamConfig
+from slamkit.eval import ate
+from slamkit.pipeline import Slam
+from slamkit.sources import open_source
+from slamkit.stages.ba import BundleAdjuster, BundleAdjustmentConfig
+
+from conftest import shared_data
+from test_pipeline import _Interrupted
+
+pycolmap.logging.minloglevel = 2
+
+
+def _run(spec: str, **overrides) -> tuple[object, Slam]:
+    src = open_source(spec)
+    slam = Slam(src, SlamConfig().with_overrides(**overrides))
+    slam.run()
+    return src, slam
+
+
+@pytest.mark.parametrize("spec, max_ate", [
+    ("synthetic:fast-forward?frames=80&speed=0.5&noise=1&seed=0", 0.05),   # ~48 px/frame along the optical axis
+    ("synthetic:jerky?frames=150&jump=30&noise=1&seed=0", 0.02),           # 3 jumps of ~45 cm in one frame
+])
+def test_fast_motion_is_tracked_end_to_end_in_one_map(spec, max_ate):
+    src, slam = _run(spec)
+    s = slam.summary()
+    assert s["fraction_posed"] >= 0.98, [r.status for r in slam.records]
+    assert len(slam.segments) == 1
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < max_ate
+
+
+def test_every_keyframe_has_a_relocalization_signature():
+    """Keyframes inserted while tracking (not only the initial pair) can relocalize a lost frame."""
+    _, slam = _run("synthetic:handheld?frames=80", init_frames=10)
+    seg = slam.segments[0]
+    assert seg.slam_map.num_keyframes > 4
+    assert set(seg.signatures) == set(seg.slam_map.keyframes)
+
+
+def test_lost_then_recovered_rejoins_the_same_map():
+    """Eight frames of unrelated texture (fewer than max_lost_frames): they are lost, and the frames after
+    them are found again in the same map segment (relocalization or the local map), with their true poses."""
+    src = _Interrupted(open_source("synthetic:handheld?frames=120"), range(60, 68), "unrelated")
+    slam = Slam(src, SlamConfig(max_lost_frames=30).with_overrides(init_frames=10))
+    results = slam.run()
+    assert all(r.status == "lost" for r in results[60:68])
+    assert all(r.has_pose for r in results[70:]), [r.message for r in results[68:72]]
+    assert len(slam.segments) == 1
+    unposed = [r.index for r in slam.records if r.rel_pose is None]
+    assert set(unposed) <= set(range(60, 70)), unposed
+    assert ate(src.source.ground_truth(), slam.trajectory()).rmse < 0.01
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("skip", [2])
+def test_kitti_07_at_driving_speed_in_one_segment(skip):
+    """KITTI 07 at 1.1 m per frame with the ``driving`` preset: by default the map starves (points
+    only near the image border) and tracking is lost."""
+    src = open_source(str(shared_data("kitti-odometry")), sequence="07")
+    slam = Slam(src, SlamConfig.preset("driving").with_overrides(frame_skip=skip))
+    slam.run()
+    s = slam.summary()
+    assert s["fraction_posed"] >= 0.98 and len(slam.segments) == 1
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < 1.5    # metres over a 90 m drive
+
+
+def test_bundle_adjustment_keeps_a_starving_keyframes_points_for_a_local_window():
+    """After a starving keyframe, the BAs of ``local_window`` keyframes filter by its smaller angle, then
+    by ``ba.min_tri_angle_deg`` again; a restored adjuster continues the same way (sessions)."""
+    ba = BundleAdjuster(BundleAdjustmentConfig(local_window=3, min_tri_angle_deg=1.5))
+    assert ba.filter_angle() == 1.5
+    assert [ba.filter_angle(0.5), ba.filter_angle()] == [0.5, 0.5]
+    restored = BundleAdjuster(BundleAdjustmentConfig(local_window=3, min_tri_angle_deg=1.5))
+    restored.restore(ba.state())
+    assert [restored.filter_angle(), restored.filter_angle()] == [0.5, 1.5]
+    assert [ba.filter_angle(), ba.filter_angle()] == [0.5, 1.5]
+
+
+def test_driving_preset_turns_the_starving_map_rule_on():
+    assert SlamConfig().mapper.starved_points == 0
+    c = SlamConfig.preset("driving").mapper
+    assert c.starved_points > 0 and c.starved_tri_angle_deg < c.min_tri_angle_deg
