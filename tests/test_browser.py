@@ -36,8 +36,8 @@ CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--enable-unsafe
                  "--disable-dev-shm-usage", "--disable-background-networking", "--disable-component-update",
                  "--no-first-run", "--disable-sync"]
 NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "02_step_through.ipynb"
-PARAMS = {"max_frames": 30, "frame_skip": 2, "init_frames": 10}
-"""A short run: 30 frames of the default sequence."""
+PARAMS = {"max_frames": 60, "frame_skip": 2, "init_frames": 10}
+"""A short run: 60 frames of the default sequence (long enough that Pause, clicked after frame 16, lands mid-run)."""
 
 if not os.path.exists(CHROMIUM):
     pytest.skip(f"{CHROMIUM} not found (apt-get install -y chromium)", allow_module_level=True)
