@@ -14,6 +14,7 @@ from .features.learned import PIPELINES as LEARNED_PIPELINES, unavailable_reason
 from .stages.ba import BundleAdjustmentConfig
 from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
+from .stages.loop_closer import LoopClosingConfig
 from .stages.mapper import MapperConfig
 from .stages.tracker import TrackerConfig
 
@@ -66,6 +67,9 @@ class SlamConfig:
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
     ba: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
+    loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
+    """Loop detection and correction (``--set loop_closing.enabled=false`` turns it off; the ``seed`` preset
+    has it off, as the source paper)."""
 
     def validate(self) -> "SlamConfig":
         if self.features not in available_extractors():
@@ -91,7 +95,7 @@ class SlamConfig:
             parse_camera_values(self.camera, "camera")
         if self.max_lost_frames < 1:
             raise ConfigError(f"max_lost_frames must be >= 1 (got {self.max_lost_frames})")
-        for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.ba):
+        for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.ba, self.loop_closing):
             stage.validate()
         if self.mapper.min_keyframe_points > self.initializer.min_points * 10:
             raise ConfigError("mapper.min_keyframe_points is larger than any initial map could provide "
@@ -176,7 +180,7 @@ ALIASES = {
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     # the source paper's settings (§3): flow 0.05, 50 matches, 20 initialization frames
-    "seed": {"flow_threshold": 0.05, "min_tracked_matches": 50, "init_frames": 20},
+    "seed": {"flow_threshold": 0.05, "min_tracked_matches": 50, "init_frames": 20, "loop_closing.enabled": False},
     # fewer features and a smaller local BA for speed
     "fast": {"num_features": 1200, "ba.local_window": 4, "ba.local_iterations": 10, "mapper.neighbors": 3},
     # more features, more keyframes, larger windows

@@ -56,6 +56,9 @@ class LoopVerificationConfig:
     """Plausible scales of the Sim(3) (monocular scale drift of one loop stays well inside)."""
     random_seed: int = 0
     """Seed of the RANSAC sampling (-1: random); a fixed seed gives repeatable decisions."""
+    max_trials: int = 100_000
+    """Most RANSAC iterations (pycolmap's default; ORB-SLAM's Sim3Solver stops at 300): a wrong candidate,
+    with few inliers, runs them all, so this bounds the cost of rejecting it."""
 
     def __post_init__(self) -> None:
         if self.min_matches < 3 or self.min_inliers < 3:
@@ -65,6 +68,8 @@ class LoopVerificationConfig:
                               f"(got {self.min_inlier_ratio})")
         if self.max_error is not None and not self.max_error > 0:
             raise ConfigError(f"LoopVerificationConfig.max_error must be > 0 or None (got {self.max_error})")
+        if self.max_trials < 1:
+            raise ConfigError(f"LoopVerificationConfig.max_trials must be >= 1 (got {self.max_trials})")
         if not self.relative_error > 0:
             raise ConfigError(f"LoopVerificationConfig.relative_error must be > 0 (got {self.relative_error})")
         low, high = self.scale_range
@@ -128,7 +133,8 @@ def verify_loop(query_points: np.ndarray, candidate_points: np.ndarray,
     if max_error is None:
         spread = float(np.median(np.linalg.norm(tgt - np.median(tgt, axis=0), axis=1)))
         max_error = cfg.relative_error * spread if spread > 0 else 1e-9
-    options = pycolmap.RANSACOptions(max_error=max_error, random_seed=cfg.random_seed)
+    options = pycolmap.RANSACOptions(max_error=max_error, random_seed=cfg.random_seed, max_num_trials=cfg.max_trials,
+                                     min_num_trials=min(1000, cfg.max_trials))
     found = pycolmap.estimate_sim3d_robust(src, tgt, options)
     if found is None:
         return LoopVerification(LoopStatus.NO_MODEL, n, max_error=max_error)

@@ -34,6 +34,7 @@ from .stages.ba import BundleAdjuster
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
 from .stages.initializer import Initializer, track_window
 from .stages.keyframes import KeyframeDecision, KeyframeSelector
+from .stages.loop_closer import LoopCloser, LoopClosingResult
 from .stages.mapper import Mapper
 from .stages.motion import MotionModel
 from .stages.relocalizer import Relocalizer, RelocalizerConfig
@@ -119,6 +120,7 @@ class Slam:
         self.culler = KeyframeCuller(KeyframeCullingConfig(k.cull_redundant, k.cull_min_observers, k.cull_keep_recent,
                                                            c.ba.local_window, max(RETRACK_BELOW_KEYFRAMES, 4)))
         self.initializer = Initializer(self.camera, replace(c.initializer, random_seed=c.seed), matcher)
+        self.loop_closer = LoopCloser(c.loop_closing, c.features)
         self.indices = np.arange(0, len(self.source), c.frame_skip)[: c.max_frames]
         self.loader.configure(self.indices, extractor, self.camera, c.prefetch)
         self.state = SlamState()
@@ -302,13 +304,14 @@ class Slam:
         record.degenerate = decision.degenerate
         timings["keyframe"] = time.perf_counter() - t
         message = (f"relocalized against keyframe {reference}: " if relocalized else "") + tr.reason
-        is_kf, ba_kind = False, ""
+        is_kf, ba_kind, loop = False, "", LoopClosingResult()
         if decision.is_keyframe:
-            is_kf, ba_kind, message, decision = self._insert_keyframe(ff, record, tr, decision, timings)
+            is_kf, ba_kind, message, decision, loop = self._insert_keyframe(ff, record, tr, decision, timings)
         return self._result(record, TRACKED, message, timings, decision=decision, matches=tr.ref_matches,
                             inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
                             degenerate=decision.degenerate, parallax_deg=parallax, relocalized=relocalized,
-                            tracked=tr.matches, reference_keyframe=reference)
+                            tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
+                            merge_candidate=loop.merge_candidate)
 
     def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict) -> StepResult:
         """Neither the local map nor relocalization found the frame; after ``max_lost_frames`` such frames
@@ -338,9 +341,11 @@ class Slam:
         return res.tracking
 
     def _insert_keyframe(self, ff: FrameFeatures, record: FrameRecord, tr: TrackingResult,
-                         decision: KeyframeDecision, timings: dict) -> tuple[bool, str, str, KeyframeDecision]:
-        """Map the frame as a keyframe, bundle-adjust, cull redundant keyframes, and track from it next.
-        Returns (registered, BA kind, message, decision — a rejection by the mapper replaces it)."""
+                         decision: KeyframeDecision, timings: dict
+                         ) -> tuple[bool, str, str, KeyframeDecision, LoopClosingResult]:
+        """Map the frame as a keyframe, bundle-adjust, cull redundant keyframes, close a loop through it, and
+        track from it next. Returns (registered, BA kind, message, decision — a rejection by the mapper
+        replaces it, what loop closing did)."""
         st = self.state
         seg = st.segment
         slam_map = seg.slam_map
@@ -351,7 +356,7 @@ class Slam:
         timings["map"] = time.perf_counter() - t
         if not mres.registered:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
-                                                            tr.ref_matches)
+                                                            tr.ref_matches), LoopClosingResult()
         t = time.perf_counter()
         bres = self.bundle_adjuster.step(slam_map, mres.image_id,
                                          self.config.mapper.starved_tri_angle_deg if mres.starved else None)
@@ -371,11 +376,28 @@ class Slam:
         if ff.signature is not None:  # every keyframe can relocalize a lost frame
             seg.signatures[mres.image_id] = ff.signature
         st.add_keyframe(record, mres.image_id)
+        if self.config.loop_closing.enabled:
+            t = time.perf_counter()
+            loop = self._close_loop(seg, mres.image_id)
+            timings["loop"] = time.perf_counter() - t
+        else:
+            loop = LoopClosingResult()
         st.points_at_last_keyframe = slam_map.reconstruction.image(mres.image_id).num_points3D
         t = time.perf_counter()
         st.local_map = self._local_map(slam_map, st.last_keyframe)
         timings["local_map"] = time.perf_counter() - t
-        return True, bres.kind, message, decision
+        return True, bres.kind, message, decision, loop
+
+    def _close_loop(self, seg: Segment, image_id: int) -> LoopClosingResult:
+        """:class:`~slamkit.stages.loop_closer.LoopCloser` through the new keyframe; after a correction a global
+        BA, and the next frame searches the new local map (fused points changed their ids)."""
+        res = self.loop_closer.step(self.state, seg, image_id)
+        if res.needs_global_ba:
+            bres = self.bundle_adjuster.adjust_global(seg.slam_map)
+            if bres.normalization is not None:
+                self.state.apply_normalization(seg, float(bres.normalization.scale))
+            self.state.last_ids = None
+        return res
 
     def _cull_keyframes(self, seg: Segment, new_image_id: int, exclude: tuple[int, ...] = ()) -> list[int]:
         """:class:`~slamkit.stages.culling.KeyframeCuller` around the new keyframe; the frames anchored to a
@@ -385,6 +407,7 @@ class Slam:
         for c in res.culled:
             self.state.reanchor(seg, c.image_id, c.anchor, c.culled_from_anchor)
             seg.signatures.pop(c.image_id, None)
+            self.loop_closer.forget(seg, c.image_id)
             seg.keyframes_culled += 1
         return res.image_ids
 

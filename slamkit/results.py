@@ -6,10 +6,14 @@ Views draw from these alone (flow lines, inliers, reasons); none of them runs a 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .state import FrameStatus
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .stages.loop_closer import LoopClosure, MergeCandidate
 
 
 @dataclass(frozen=True, eq=False)
@@ -84,6 +88,10 @@ class StepResult:
     """The frame's matches to the local map (empty unless tracked), for views: ``tracked.flow_lines()``."""
     reference_keyframe: int = -1
     """Image id of the keyframe the frame was tracked against (the last keyframe; -1 when not tracked)."""
+    loop_closure: "LoopClosure | None" = None
+    """The loop this keyframe closed (keyframes, matches, inliers, size of the correction), or None."""
+    merge_candidate: "MergeCandidate | None" = None
+    """A verified place of an earlier map segment (what merging the two segments needs), or None."""
 
     @property
     def has_pose(self) -> bool:
@@ -102,5 +110,10 @@ class StepResult:
         # matches and inliers are the tracker's: while initializing there are none to speak of
         counts = f" matches={self.matches} inliers={self.inliers}" if self.status == "tracked" else ""
         ms = sum(self.timings.values()) * 1e3
+        loop = f"; {self.loop_closure}" if self.loop_closure is not None else ""
+        if self.merge_candidate is not None:
+            m = self.merge_candidate
+            loop += (f"; place of segment {m.candidate_segment} recognised (keyframe {m.query_image_id} ~ "
+                     f"{m.candidate_image_id}, {m.inliers}/{m.matches} inliers)")
         return (f"frame {self.frame_index} [{self.status}]{flow}{counts} "
-                f"kf={self.num_keyframes} pts={self.num_points} {ms:.0f} ms {kf} {self.message}".rstrip())
+                f"kf={self.num_keyframes} pts={self.num_points} {ms:.0f} ms {kf} {self.message}{loop}".rstrip())

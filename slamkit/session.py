@@ -57,6 +57,7 @@ from .io.atomic import atomic_dir
 from .io.run_dir import SESSION_MARKER, write_manifest
 from .io.saved import check_session
 from .local_map import LocalMap
+from .loop_verification import ConsistentGroup
 from .map import CAMERA_ID, Keyframe, SlamMap, graph_pairs, max_point3D_id
 from .map import max_point3D_id as _max_point3D_id  # noqa: F401  (its name here before it moved to map)
 from .stages.initializer import InitializerWindow
@@ -128,6 +129,11 @@ def _state_to(state: SlamState, arrays: dict, folder: Path) -> dict:
                 arrays["last_ids"] = np.asarray(value)
         elif name in ("timings", "errors"):
             meta[name] = {str(k): v for k, v in value.items()}
+        elif name == "loop_groups":
+            meta[name] = [{"keyframes": sorted(int(k) for k in g.keyframes), "consistency": int(g.consistency)}
+                          for g in value]
+        elif name == "loop_closures":
+            meta[name] = [dict(c) for c in value]
         elif value is None or isinstance(value, (bool, int, float, str)):
             meta["state"][_STATE_SAVED_AS.get(name, name)] = value
         else:  # a new kind of field: give it a format here, it must not be lost silently
@@ -295,6 +301,7 @@ def _check_source(saved: dict, source, folder: Path) -> None:
 def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
     slam.state = _state_from(meta, arrays, folder, slam.camera)
     slam.bundle_adjuster.restore(meta["bundle_adjuster"])
+    slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(
         _frame_features_from(imeta["frames"], "init_frames", arrays),
@@ -321,6 +328,11 @@ def _state_from(meta: dict, arrays: dict, folder: Path, camera: Intrinsics) -> S
             values[name] = dict(meta["timings"])
         elif name == "errors":
             values[name] = {int(k): v for k, v in meta.get("errors", {}).items()}
+        elif name == "loop_groups":  # sessions saved before loop closing have none
+            values[name] = tuple(ConsistentGroup(frozenset(g["keyframes"]), int(g["consistency"]))
+                                 for g in meta.get(name, []))
+        elif name == "loop_closures":
+            values[name] = [dict(c) for c in meta.get(name, [])]
         elif name != "segment" and _STATE_SAVED_AS.get(name, name) in saved:
             values[name] = saved[_STATE_SAVED_AS.get(name, name)]
     state = SlamState(**values)

@@ -114,6 +114,14 @@ class SlamState:
     """Frame index -> the exception a stage raised on it (those frames have status ``error``)."""
     finished: bool = False
     """``Slam.finish`` ran (final global BA, initial frames re-tracked)."""
+    loop_groups: tuple = ()
+    """Loop-candidate groups of the last keyframe (``loop_verification.ConsistentGroup``; keys are keyframe
+    frame indices), continued by the next keyframe's candidates (loop closing's consistency check)."""
+    loop_closures: list[dict] = field(default_factory=list)
+    """One entry per closed loop (``LoopClosure.to_dict()``: segment, keyframes, matches, inliers, correction)."""
+    last_loop_segment: int = -1
+    last_loop_image_id: int = -1
+    """Segment and image id of the keyframe that closed the last loop (-1: none yet)."""
 
     # ----------------------------------------------------------------- poses
     def pose_of(self, rec: FrameRecord | int) -> np.ndarray | None:
@@ -171,6 +179,16 @@ class SlamState:
             rel = self.records[i].rel_pose
             if rel is not None:
                 rel[:3, 3] *= scale
+
+    def apply_loop_correction(self, seg: Segment, scales: dict[int, float]) -> None:
+        """Keyframes of ``seg`` were corrected by a Sim(3) pose graph: keyframe k's rigid pose is ``(R, t / s_k)``
+        of its corrected similarity, so a frame posed relative to k keeps its relative rotation and its relative
+        translation shrinks by ``s_k`` (``scales``: image id -> s_k)."""
+        for i in seg.frames:
+            rec = self.records[i]
+            s = scales.get(rec.ref_image_id)
+            if rec.rel_pose is not None and rec.segment == seg.id and s is not None:
+                rec.rel_pose[:3, 3] /= s
 
     # ----------------------------------------------------------------- segments
     def start_segment(self, slam_map: "SlamMap", frames: Sequence["FrameFeatures"],
@@ -274,6 +292,11 @@ class SlamState:
             "main_segment": main.id if main else None,
             "relocalizations": int(sum(s.relocalizations for s in self.segments)),
             "keyframes_culled": int(sum(s.keyframes_culled for s in self.segments)),
+            "loop_closures": len(self.loop_closures),
+            "loop_closure_pairs": [{"segment": c["segment"], "query_frame": c["query_frame"],
+                                    "candidate_frame": c["candidate_frame"], "inliers": c["inliers"],
+                                    "translation_m": c["translation_m"], "rotation_deg": c["rotation_deg"],
+                                    "scale": c["scale"]} for c in self.loop_closures],
             "cpu_time_s": self.cpu_time,
             "wall_time_s": self.wall_time,
             "fps": n / self.wall_time if self.wall_time > 0 else 0.0,

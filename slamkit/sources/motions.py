@@ -139,15 +139,18 @@ def _periodic_noise(n: int, rng: np.random.Generator, amplitude: float, cycles: 
     return (w[:, None] * (np.sin(2 * np.pi * k[:, None] * i + ph[:, None]) - np.sin(ph[:, None]))).sum(0) / 2
 
 
-def loop(n: int = 240, jitter: float = 0.0, seed: int = 0) -> np.ndarray:
+def loop(n: int = 240, jitter: float = 0.0, seed: int = 0, laps: int = 1) -> np.ndarray:
     """A closed loop: an ellipse (2.4 m x 1 m, 1.45 m high) in the back half of the room, starting with a
     sideways move, looking at the front half while the gaze sweeps left and right. The last pose equals the
     first. ``jitter`` (0..2) adds periodic hand-held shake: about 3 cm, 0.1 m of gaze and 1.5 degrees of roll
-    per unit, drawn from ``seed``."""
+    per unit, drawn from ``seed``. ``laps`` (>= 1): times the ellipse is driven round in the n frames (the
+    later laps revisit the places of the first: a sequence for loop closing)."""
     n = _check_frames(n)
     if not (math.isfinite(jitter) and 0 <= jitter <= 2):
         raise ConfigError(f"jitter must be in [0, 2] (got {jitter})")
-    phi = 2 * np.pi * np.arange(n) / (n - 1)
+    if int(laps) != laps or laps < 1:
+        raise ConfigError(f"laps must be an integer >= 1 (got {laps})")
+    phi = 2 * np.pi * int(laps) * np.arange(n) / (n - 1)
     centers = np.stack([1.2 * np.sin(phi), -0.6 - 0.5 * (1 - np.cos(phi)), 1.45 + 0.08 * np.sin(2 * phi)], axis=1)
     targets = np.stack([2.6 * np.sin(phi) + 0.5 * np.sin(2 * phi), np.full(n, ROOM_Y),
                         1.15 + 0.2 * np.sin(3 * phi)], axis=1)
