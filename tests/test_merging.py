@@ -9,6 +9,8 @@ test resumes that session (so each gets a fresh state; the last 20 frames are fo
 
 from __future__ import annotations
 
+import json
+import shutil
 from dataclasses import replace
 
 import cv2
@@ -19,10 +21,12 @@ from slamkit.config import SlamConfig
 from slamkit.errors import ConfigError
 from slamkit.eval.align import estimate_alignment
 from slamkit.eval.metrics import ate
+from slamkit.io.run_dir import SESSION_MARKER, write_manifest
 from slamkit.local_map import LocalMap
 from slamkit.map import graph_pairs, matrix_from_rigid
 from slamkit.merging import MergeResult, merge_segments, segment_alignment, transform_cam_from_world
 from slamkit.pipeline import Slam
+from slamkit.session import SESSION_FILE
 from slamkit.pose_graph import sim3_decompose, sim3_matrix
 from slamkit.sources import open_source
 from slamkit.sources.scene import default_room
@@ -231,3 +235,20 @@ def test_misuse_is_a_clear_error(session):
         merge_segments(slam.state, target, source, sim)
     with pytest.raises(ConfigError, match="already merged into segment 0"):
         merge_segments(slam.state, source, target, sim)
+
+
+def test_a_session_saved_before_segments_could_merge_still_loads(session, tmp_path):
+    """Sessions written before ``Segment.merged_into`` existed have no such key: their segments load unmerged
+    (-1), and can then be merged."""
+    src, folder = session
+    old = tmp_path / "old"
+    shutil.copytree(folder, old)
+    meta = json.loads((old / SESSION_FILE).read_text())
+    for seg in meta["segments"]:
+        assert seg["extra"].pop("merged_into") == -1  # saved as a segment field like keyframes_culled
+    (old / SESSION_FILE).write_text(json.dumps(meta))
+    write_manifest(old, SESSION_MARKER)  # as the older version signed it
+    slam = Slam.resume(old, source=src)
+    assert [s.merged_into for s in slam.segments] == [-1, -1] and slam.summary()["merges"] == 0
+    merge_segments(slam.state, slam.segments[0], slam.segments[1], np.eye(4))
+    assert slam.summary()["merges"] == 1 and len(slam.summary()["segments"]) == 1
