@@ -12,7 +12,8 @@ way in ``Reconstruction::Merge`` after ``AlignReconstructions``):
   triangulation and track merging keep working across the merged map;
 - every source 3D point is added at ``s R x + t`` with its track re-pointed to the new image ids, through the
   target's ``ObservationManager`` (its statistics stay exact);
-- the given pairs of the same physical point are fused with ``ObservationManager.merge_points3D`` (COLMAP's
+- the given pairs of the same physical point become keypoint matches between the target and source keyframes
+  observing them (added to the correspondence graph before the keyframes are registered), and are fused with ``ObservationManager.merge_points3D`` (COLMAP's
   ``MergePoints3D``: one point at the track-length-weighted mean, the union of the tracks), and marked modified
   so the next bundle adjustment completes and merges their tracks further;
 - the source's frame records are re-pointed (segment, reference keyframe, relative translation times ``s``)
@@ -74,6 +75,9 @@ class MergeResult:
     global_ba_advised: bool = False
     """Points were fused, so the two parts share tracks: a global BA can now reconcile them (without shared
     points it could not move one part relative to the other)."""
+    seam_image_pairs: int = 0
+    """(target keyframe, source keyframe) pairs given correspondence-graph matches from the fused points, so
+    later triangulation, track completion and merging work across the seam."""
 
     @property
     def local_map_stale(self) -> bool:
@@ -140,8 +144,32 @@ def transform_cam_from_world(cam_from_world: np.ndarray, target_from_source: np.
     return np.diag([s, s, s, 1.0]) @ np.asarray(cam_from_world, np.float64) @ world_from_target
 
 
-def _move_keyframes(target_map: SlamMap, source_map: SlamMap, sim: np.ndarray) -> dict[int, int]:
-    """Add every source keyframe to the target map (new ids, transformed poses, their graph matches);
+def _seam_matches(target_map: SlamMap, source_map: SlamMap, pairs: np.ndarray
+                  ) -> dict[tuple[int, int], np.ndarray]:
+    """Keypoint matches across the seam that the fused points imply: for each (target point, source point)
+    pair, every target observation with every source observation. Returns (target image id, source image id)
+    -> (M, 2) uint32 (keypoint in the target image, keypoint in the source image), one match per keypoint
+    on each side (the first)."""
+    rec_t, rec_s = target_map.reconstruction, source_map.reconstruction
+    found: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for a, b in pairs.tolist():
+        for el_t in rec_t.point3D(a).track.elements:
+            for el_s in rec_s.point3D(b).track.elements:
+                if el_t.image_id in target_map.keyframes and el_s.image_id in source_map.keyframes:
+                    found.setdefault((el_t.image_id, el_s.image_id), []).append((el_t.point2D_idx, el_s.point2D_idx))
+    out = {}
+    for key, rows in sorted(found.items()):
+        m = np.array(rows, np.int64)
+        m = m[np.unique(m[:, 0], return_index=True)[1]]
+        m = m[np.unique(m[:, 1], return_index=True)[1]]
+        out[key] = m.astype(np.uint32)
+    return out
+
+
+def _move_keyframes(target_map: SlamMap, source_map: SlamMap, sim: np.ndarray,
+                    seam: dict[tuple[int, int], np.ndarray]) -> dict[int, int]:
+    """Add every source keyframe to the target map (new ids, transformed poses, their graph matches and the
+    ``seam`` matches with target keyframes, all before any is registered, as the mapper adds a keyframe);
     returns source image id -> new image id."""
     ids: dict[int, int] = {}
     for iid in sorted(source_map.keyframes):
@@ -152,6 +180,8 @@ def _move_keyframes(target_map: SlamMap, source_map: SlamMap, sim: np.ndarray) -
     for (a, b), m in zip(pairs, matches):
         if a in ids and b in ids:
             target_map.add_matches(ids[a], ids[b], m)
+    for (a, b), m in seam.items():
+        target_map.add_matches(a, ids[b], m)
     target_map.observe(*ids.values())  # every match added before any of them is registered
     for iid, new in ids.items():
         pose = transform_cam_from_world(matrix_from_rigid(source_map.cam_from_world(iid)), sim)
@@ -276,7 +306,8 @@ def merge_segments(state: SlamState, target: Segment, source: Segment, target_fr
     if source.slam_map.num_keyframes == 0:
         raise ConfigError(f"merge_segments: segment {source.id} has no keyframes to merge")
     target_map, source_map = target.slam_map, source.slam_map
-    ids = _move_keyframes(target_map, source_map, sim)
+    seam = _seam_matches(target_map, source_map, pairs)
+    ids = _move_keyframes(target_map, source_map, sim, seam)
     points = _move_points(target_map, source_map, ids, s, r, t)
     fused, fused_ids = _fuse_points(target_map, pairs, points)
     points = {k: fused_ids.get(v, v) for k, v in points.items()}
@@ -285,7 +316,7 @@ def merge_segments(state: SlamState, target: Segment, source: Segment, target_fr
     _move_bookkeeping(target, source, ids)
     last = _move_cursor(state, target, source, ids, points)
     return MergeResult(target.id, source.id, len(ids), n_points, fused, frames, s, r, t, ids, points, last,
-                       global_ba_advised=fused > 0)
+                       global_ba_advised=fused > 0, seam_image_pairs=len(seam))
 
 
 # ------------------------------------------------------------------------------------------------------

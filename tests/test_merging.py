@@ -136,7 +136,8 @@ def test_two_segments_merge_into_one_map_matching_ground_truth(session, tmp_path
     assert res.points_fused == len(al.point_pairs) and res.keyframes_moved == n_kf[1]
     assert target.slam_map.num_points == sum(n_points) - res.points_fused
     assert target.slam_map.num_keyframes == sum(n_kf) and source.slam_map.num_keyframes == 0
-    assert len(graph_pairs(target.slam_map)[0]) == sum(n_pairs)  # source matches carried over
+    assert res.seam_image_pairs > 0  # keyframes that see a fused point are matched across the seam
+    assert len(graph_pairs(target.slam_map)[0]) == sum(n_pairs) + res.seam_image_pairs  # source matches carried
     assert source.merged_into == 0 and source.frames == [] and res.frames_moved >= n_frames[1]
     _check_valid(target.slam_map.reconstruction)
     # one map, one trajectory: every posed frame of both segments, accurate after ONE Sim(3)
