@@ -13,9 +13,10 @@ way in ``Reconstruction::Merge`` after ``AlignReconstructions``):
 - every source 3D point is added at ``s R x + t`` with its track re-pointed to the new image ids, through the
   target's ``ObservationManager`` (its statistics stay exact);
 - the given pairs of the same physical point become keypoint matches between the target and source keyframes
-  observing them (added to the correspondence graph before the keyframes are registered), and are fused with ``ObservationManager.merge_points3D`` (COLMAP's
-  ``MergePoints3D``: one point at the track-length-weighted mean, the union of the tracks), and marked modified
-  so the next bundle adjustment completes and merges their tracks further;
+  observing them (added to the correspondence graph before those keyframes are registered), and are fused
+  with ``ObservationManager.merge_points3D`` (COLMAP's ``MergePoints3D``: one point at the track-length-weighted
+  mean, the union of the tracks) and marked modified, so the next bundle adjustment completes and merges
+  tracks across the seam;
 - the source's frame records are re-pointed (segment, reference keyframe, relative translation times ``s``)
   so every frame's world pose in the target map is exactly the transformed old one;
 - the source segment is emptied and marked ``merged_into`` the target (it stays in ``SlamState.segments`` so
@@ -111,7 +112,10 @@ def _check_sim3(target_from_source: np.ndarray) -> tuple[float, np.ndarray, np.n
     if m.shape != (4, 4) or not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
         raise ConfigError(f"target_from_source: expected a finite (4, 4) similarity [[s R, t], [0, 1]], "
                           f"got shape {m.shape}")
-    s, r, t = sim3_decompose(m)
+    try:
+        s, r, t = sim3_decompose(m)
+    except ConfigError as e:  # a reflection or a singular matrix
+        raise ConfigError(f"target_from_source: {e}") from None
     if not np.allclose(r.T @ r, np.eye(3), atol=1e-6) or not MERGE_SCALE_RANGE[0] <= s <= MERGE_SCALE_RANGE[1]:
         raise ConfigError(f"target_from_source: not a similarity with a plausible scale (scale {s:.4g}, "
                           f"rotation orthonormal to {np.abs(r.T @ r - np.eye(3)).max():.2g})")
@@ -268,7 +272,7 @@ def _move_bookkeeping(target: Segment, source: Segment, ids: dict[int, int]) -> 
     target.keyframes_culled += source.keyframes_culled
     old = source.slam_map
     source.slam_map = SlamMap(old.camera, old.triangulation)
-    source.slam_map.reconstruction.camera(CAMERA_ID).params = old.reconstruction.camera(CAMERA_ID).params  # refined, if any
+    source.slam_map.reconstruction.camera(CAMERA_ID).params = old.reconstruction.camera(CAMERA_ID).params  # refined
     source.frames, source.initial_frames, source.signatures = [], [], {}
     source.relocalizations = source.keyframes_culled = 0
     source.merged_into = target.id

@@ -226,8 +226,12 @@ def test_misuse_is_a_clear_error(session):
     sim = np.eye(4)
     with pytest.raises(ConfigError, match="into itself"):
         merge_segments(slam.state, target, target, sim)
-    with pytest.raises(ConfigError, match="similarity"):
-        merge_segments(slam.state, target, source, np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(ConfigError, match="target_from_source: not a similarity"):
+        merge_segments(slam.state, target, source, np.diag([1.0, 1.0, -1.0, 1.0]))  # a reflection
+    with pytest.raises(ConfigError, match="target_from_source: not a similarity"):
+        merge_segments(slam.state, target, source, np.diag([1.0, 2.0, 1.0, 1.0]))  # anisotropic
+    with pytest.raises(ConfigError, match="target_from_source: expected a finite"):
+        merge_segments(slam.state, target, source, np.eye(3))
     with pytest.raises(ConfigError, match="point_pairs"):
         merge_segments(slam.state, target, source, sim, np.array([[10**9, 1]]))
     assert source.merged_into == -1 and source.slam_map.num_keyframes > 0  # nothing happened
