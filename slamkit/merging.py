@@ -122,6 +122,14 @@ def _check_sim3(target_from_source: np.ndarray) -> tuple[float, np.ndarray, np.n
     return s, r, t
 
 
+def _check_records(state: SlamState, source: Segment) -> None:
+    """Every posed frame of the source is anchored to one of its keyframes (checked before anything moves)."""
+    for rec in state.records:
+        if rec.segment == source.id and rec.rel_pose is not None and rec.ref_image_id not in source.slam_map.keyframes:
+            raise ConfigError(f"merge_segments: frame {rec.index} is posed relative to image {rec.ref_image_id}, "
+                              f"not a keyframe of segment {source.id}")
+
+
 def _check_pairs(point_pairs, target_map: SlamMap, source_map: SlamMap) -> np.ndarray:
     if point_pairs is None:
         return np.empty((0, 2), np.int64)
@@ -250,9 +258,6 @@ def _repoint_records(state: SlamState, target: Segment, source: Segment, ids: di
         if rec.segment != source.id:
             continue
         if rec.rel_pose is not None:
-            if rec.ref_image_id not in ids:  # every posed frame is anchored to a keyframe of its map
-                raise ConfigError(f"merge_segments: frame {rec.index} is posed relative to image "
-                                  f"{rec.ref_image_id}, not a keyframe of segment {source.id}")
             rec.rel_pose = rec.rel_pose.copy()
             rec.rel_pose[:3, 3] *= s
             rec.ref_image_id = ids[rec.ref_image_id]
@@ -309,6 +314,7 @@ def merge_segments(state: SlamState, target: Segment, source: Segment, target_fr
     pairs = _check_pairs(point_pairs, target.slam_map, source.slam_map)
     if source.slam_map.num_keyframes == 0:
         raise ConfigError(f"merge_segments: segment {source.id} has no keyframes to merge")
+    _check_records(state, source)
     target_map, source_map = target.slam_map, source.slam_map
     seam = _seam_matches(target_map, source_map, pairs)
     ids = _move_keyframes(target_map, source_map, sim, seam)
