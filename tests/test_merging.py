@@ -257,3 +257,22 @@ def test_a_session_saved_before_segments_could_merge_still_loads(session, tmp_pa
     assert [s.merged_into for s in slam.segments] == [-1, -1] and slam.summary()["merges"] == 0
     merge_segments(slam.state, slam.segments[0], slam.segments[1], np.eye(4))
     assert slam.summary()["merges"] == 1 and len(slam.summary()["segments"]) == 1
+
+
+def test_an_earlier_segment_merged_into_the_current_one(session):
+    """The other direction: the older segment moves into the one being tracked, whose keyframes, local map
+    and cursor stay as they are; both visits end in one trajectory in the current segment's frame."""
+    src, slam = _resume(session)
+    older, current = slam.segments
+    local_map, last_keyframe = slam.state.local_map, slam.state.last_keyframe
+    al = segment_alignment(current.slam_map, older.slam_map)
+    assert al.accepted, al.verification.reason
+    res = merge_segments(slam.state, current, older, al.target_from_source, al.point_pairs)
+    assert res.target == 1 and res.last_keyframe == -1 and not res.local_map_stale
+    assert slam.state.segment is current and slam.state.local_map is local_map
+    assert slam.state.last_keyframe == last_keyframe
+    s = slam.summary()
+    assert s["main_segment"] == 1 and s["merges"] == 1 and [g["id"] for g in s["segments"]] == [1]
+    assert len(slam.trajectory(segment=0)) == s["frames_posed"]
+    _check_valid(current.slam_map.reconstruction)
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.015
