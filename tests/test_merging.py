@@ -156,7 +156,8 @@ def test_two_segments_merge_into_one_map_matching_ground_truth(session, tmp_path
         slam.state.apply_normalization(target, float(bres.normalization.scale))
     assert bres.termination in ("CONVERGENCE", "NO_CONVERGENCE")
     assert target.slam_map.mean_reprojection_error() <= error_before + 1e-9
-    assert ate(gt, slam.trajectory()).rmse < 0.015
+    assert bres.merged > 0  # tracks joined across the seam through the fused points' matches
+    assert ate(gt, slam.trajectory()).rmse < 0.008  # BA reconciles the two parts (measured 3.8 mm, 8.8 before)
     _check_valid(target.slam_map.reconstruction)
 
     # save and resume the merged state
