@@ -75,6 +75,9 @@ class Segment:
     relocalizations: int = 0
     keyframes_culled: int = 0
     """Keyframes removed from the map as redundant (``keyframes.cull_redundant``)."""
+    merged_into: int = -1
+    """Id of the segment this one was merged into (``slamkit.merging.merge_segments``; it is then empty and
+    kept only so segment ids stay indices), -1 while it is a map of its own."""
 
 
 def _matrix(rigid) -> np.ndarray:
@@ -224,10 +227,23 @@ class SlamState:
 
     @property
     def main_segment(self) -> Segment | None:
-        """The segment with the most posed frames."""
-        if not self.segments:
+        """The segment with the most posed frames (merged segments are part of their target)."""
+        live = self.live_segments
+        if not live:
             return None
-        return max(self.segments, key=lambda s: (len(s.frames), -s.id))
+        return max(live, key=lambda s: (len(s.frames), -s.id))
+
+    @property
+    def live_segments(self) -> list[Segment]:
+        """The segments that are maps of their own (not merged into another)."""
+        return [s for s in self.segments if s.merged_into < 0]
+
+    def resolve_segment(self, segment: int) -> Segment:
+        """Segment ``segment``, or the segment it was merged into (following merges)."""
+        seg = self.segments[segment]
+        while seg.merged_into >= 0:
+            seg = self.segments[seg.merged_into]
+        return seg
 
     @property
     def slam_map(self) -> "SlamMap | None":
@@ -239,7 +255,7 @@ class SlamState:
 
     def trajectory(self, keyframes_only: bool = False, segment: int | None = None) -> Trajectory:
         """Camera-to-world poses of the posed frames of a segment (default: the main one), source timestamps."""
-        seg = self.main_segment if segment is None else self.segments[segment]
+        seg = self.main_segment if segment is None else self.resolve_segment(segment)
         if seg is None:
             return Trajectory(np.empty(0), np.empty((0, 4, 4)))
         ts, poses = [], []
@@ -288,8 +304,9 @@ class SlamState:
             "segments": [{"id": s.id, "frames": len(s.frames), "first_frame": s.frames[0] if s.frames else None,
                           "last_frame": s.frames[-1] if s.frames else None, "relocalizations": s.relocalizations,
                           "keyframes": s.slam_map.num_keyframes, "points3D": s.slam_map.num_points}
-                         for s in self.segments],
+                         for s in self.live_segments],
             "main_segment": main.id if main else None,
+            "merges": int(sum(s.merged_into >= 0 for s in self.segments)),
             "relocalizations": int(sum(s.relocalizations for s in self.segments)),
             "keyframes_culled": int(sum(s.keyframes_culled for s in self.segments)),
             "loop_closures": len(self.loop_closures),
