@@ -26,6 +26,7 @@ from .interrupt import deferred_interrupt
 from .io.run import save_run
 from .local_map import LocalMap
 from .map import SlamMap
+from .merging import MergeResult, merge_segments
 from .results import StepResult, TrackedMatches
 from .session import load_session, save_session
 from .sources import open_source
@@ -34,7 +35,7 @@ from .stages.ba import BundleAdjuster
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
 from .stages.initializer import Initializer, track_window
 from .stages.keyframes import KeyframeDecision, KeyframeSelector
-from .stages.loop_closer import LoopCloser, LoopClosingResult
+from .stages.loop_closer import LoopCloser, LoopClosingResult, MergeCandidate
 from .stages.mapper import Mapper
 from .stages.motion import MotionModel
 from .stages.relocalizer import Relocalizer, RelocalizerConfig
@@ -304,14 +305,15 @@ class Slam:
         record.degenerate = decision.degenerate
         timings["keyframe"] = time.perf_counter() - t
         message = (f"relocalized against keyframe {reference}: " if relocalized else "") + tr.reason
-        is_kf, ba_kind, loop = False, "", LoopClosingResult()
+        is_kf, ba_kind, (loop, merge) = False, "", (LoopClosingResult(), None)
         if decision.is_keyframe:
-            is_kf, ba_kind, message, decision, loop = self._insert_keyframe(ff, record, tr, decision, timings)
+            is_kf, ba_kind, message, decision, (loop, merge) = self._insert_keyframe(ff, record, tr, decision,
+                                                                                     timings)
         return self._result(record, TRACKED, message, timings, decision=decision, matches=tr.ref_matches,
                             inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
                             degenerate=decision.degenerate, parallax_deg=parallax, relocalized=relocalized,
                             tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
-                            merge_candidate=loop.merge_candidate)
+                            merge_candidate=loop.merge_candidate, map_merge=merge)
 
     def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict) -> StepResult:
         """Neither the local map nor relocalization found the frame; after ``max_lost_frames`` such frames
@@ -356,7 +358,7 @@ class Slam:
         timings["map"] = time.perf_counter() - t
         if not mres.registered:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
-                                                            tr.ref_matches), LoopClosingResult()
+                                                            tr.ref_matches), (LoopClosingResult(), None)
         t = time.perf_counter()
         bres = self.bundle_adjuster.step(slam_map, mres.image_id,
                                          self.config.mapper.starved_tri_angle_deg if mres.starved else None)
@@ -378,25 +380,48 @@ class Slam:
         st.add_keyframe(record, mres.image_id)
         if self.config.loop_closing.enabled:
             t = time.perf_counter()
-            loop = self._close_loop(seg, mres.image_id)
+            loop, merge = self._close_loop(seg, mres.image_id)
             timings["loop"] = time.perf_counter() - t
+            seg, slam_map = st.segment, st.segment.slam_map  # after a merge: the earlier segment's map
         else:
-            loop = LoopClosingResult()
-        st.points_at_last_keyframe = slam_map.reconstruction.image(mres.image_id).num_points3D
+            loop, merge = LoopClosingResult(), None
+        st.points_at_last_keyframe = slam_map.reconstruction.image(st.last_keyframe).num_points3D
         t = time.perf_counter()
         st.local_map = self._local_map(slam_map, st.last_keyframe)
         timings["local_map"] = time.perf_counter() - t
-        return True, bres.kind, message, decision, loop
+        return True, bres.kind, message, decision, (loop, merge)
 
-    def _close_loop(self, seg: Segment, image_id: int) -> LoopClosingResult:
-        """:class:`~slamkit.stages.loop_closer.LoopCloser` through the new keyframe; after a correction a global
-        BA, and the next frame searches the new local map (fused points changed their ids)."""
+    def _close_loop(self, seg: Segment, image_id: int) -> tuple[LoopClosingResult, MergeResult | None]:
+        """:class:`~slamkit.stages.loop_closer.LoopCloser` through the new keyframe; a place of an earlier segment
+        merges the current segment into it (:meth:`_merge_maps`). After a correction or a merge a global BA, and
+        the next frame searches the new local map (fused points changed their ids)."""
         res = self.loop_closer.step(self.state, seg, image_id)
-        if res.needs_global_ba:
+        merge = None
+        if res.merge_candidate is not None:
+            merge = self._merge_maps(res.merge_candidate)
+            seg = self.state.segment
+        if res.needs_global_ba or (merge is not None and merge.global_ba_advised):
             bres = self.bundle_adjuster.adjust_global(seg.slam_map)
             if bres.normalization is not None:
                 self.state.apply_normalization(seg, float(bres.normalization.scale))
             self.state.last_ids = None
+        return res, merge
+
+    def _merge_maps(self, candidate: MergeCandidate) -> MergeResult:
+        """The current segment recognised a place of an earlier one: move the current segment's map and frames
+        into the earlier segment's map through the verified Sim(3) (:func:`~slamkit.merging.merge_segments`),
+        fusing the matched points; tracking continues in the merged map."""
+        st = self.state
+        target, source = st.segments[candidate.candidate_segment], st.segments[candidate.segment]
+        query_frame = source.slam_map.keyframes[candidate.query_image_id].frame_index
+        candidate_frame = target.slam_map.keyframes[candidate.candidate_image_id].frame_index
+        res = merge_segments(st, target, source, candidate.tgt_from_src, candidate.point_pairs[:, ::-1])
+        self.loop_closer.rebuild(st.segments)  # image ids of the moved keyframes changed
+        st.loop_groups = ()
+        st.map_merges.append({"segment": res.source, "into": res.target, "query_frame": int(query_frame),
+                              "candidate_frame": int(candidate_frame), "inliers": candidate.inliers,
+                              "matches": candidate.matches, "keyframes_moved": res.keyframes_moved,
+                              "points_fused": res.points_fused, "scale": float(res.scale)})
         return res
 
     def _cull_keyframes(self, seg: Segment, new_image_id: int, exclude: tuple[int, ...] = ()) -> list[int]:

@@ -13,6 +13,7 @@ import numpy as np
 from .state import FrameStatus
 
 if TYPE_CHECKING:  # pragma: no cover
+    from .merging import MergeResult
     from .stages.loop_closer import LoopClosure, MergeCandidate
 
 
@@ -92,6 +93,9 @@ class StepResult:
     """The loop this keyframe closed (keyframes, matches, inliers, size of the correction), or None."""
     merge_candidate: "MergeCandidate | None" = None
     """A verified place of an earlier map segment (what merging the two segments needs), or None."""
+    map_merge: "MergeResult | None" = None
+    """The current map segment merged into the earlier one whose place it recognised (``merge_candidate``):
+    keyframes and points moved, points fused, the Sim(3)'s scale; or None."""
 
     @property
     def has_pose(self) -> bool:
@@ -115,5 +119,7 @@ class StepResult:
             m = self.merge_candidate
             loop += (f"; place of segment {m.candidate_segment} recognised (keyframe {m.query_image_id} ~ "
                      f"{m.candidate_image_id}, {m.inliers}/{m.matches} inliers)")
+        if self.map_merge is not None:
+            loop += f"; {self.map_merge.reason}"
         return (f"frame {self.frame_index} [{self.status}]{flow}{counts} "
                 f"kf={self.num_keyframes} pts={self.num_points} {ms:.0f} ms {kf} {self.message}{loop}".rstrip())

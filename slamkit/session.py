@@ -132,7 +132,7 @@ def _state_to(state: SlamState, arrays: dict, folder: Path) -> dict:
         elif name == "loop_groups":
             meta[name] = [{"keyframes": sorted(int(k) for k in g.keyframes), "consistency": int(g.consistency)}
                           for g in value]
-        elif name == "loop_closures":
+        elif name in ("loop_closures", "map_merges"):
             meta[name] = [dict(c) for c in value]
         elif value is None or isinstance(value, (bool, int, float, str)):
             meta["state"][_STATE_SAVED_AS.get(name, name)] = value
@@ -331,7 +331,7 @@ def _state_from(meta: dict, arrays: dict, folder: Path, camera: Intrinsics) -> S
         elif name == "loop_groups":  # sessions saved before loop closing have none
             values[name] = tuple(ConsistentGroup(frozenset(g["keyframes"]), int(g["consistency"]))
                                  for g in meta.get(name, []))
-        elif name == "loop_closures":
+        elif name in ("loop_closures", "map_merges"):  # sessions saved before loop closing have none
             values[name] = [dict(c) for c in meta.get(name, [])]
         elif name != "segment" and _STATE_SAVED_AS.get(name, name) in saved:
             values[name] = saved[_STATE_SAVED_AS.get(name, name)]

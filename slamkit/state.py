@@ -122,6 +122,9 @@ class SlamState:
     frame indices), continued by the next keyframe's candidates (loop closing's consistency check)."""
     loop_closures: list[dict] = field(default_factory=list)
     """One entry per closed loop (``LoopClosure.to_dict()``: segment, keyframes, matches, inliers, correction)."""
+    map_merges: list[dict] = field(default_factory=list)
+    """One entry per map merge (segment merged, into which, the keyframes' frame indices, inliers, keyframes
+    moved, points fused, the Sim(3)'s scale)."""
     last_loop_segment: int = -1
     last_loop_image_id: int = -1
     """Segment and image id of the keyframe that closed the last loop (-1: none yet)."""
@@ -307,6 +310,7 @@ class SlamState:
                          for s in self.live_segments],
             "main_segment": main.id if main else None,
             "merges": int(sum(s.merged_into >= 0 for s in self.segments)),
+            "map_merges": [dict(m) for m in self.map_merges],
             "relocalizations": int(sum(s.relocalizations for s in self.segments)),
             "keyframes_culled": int(sum(s.keyframes_culled for s in self.segments)),
             "loop_closures": len(self.loop_closures),

@@ -69,7 +69,8 @@ class TwoVisits:
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     src = TwoVisits()
-    slam = Slam(src, SlamConfig(max_lost_frames=5).with_overrides(init_frames=10))
+    config = SlamConfig(max_lost_frames=5).with_overrides(init_frames=10, **{"loop_closing.enabled": False})
+    slam = Slam(src, config)  # no loop closing: the pipeline would merge the segments itself (test below)
     slam.run(max_steps=STOP)
     assert len(slam.segments) == 2 and slam.state.segment is slam.segments[1]  # the break happened
     folder = tmp_path_factory.mktemp("merging") / "session"
@@ -277,3 +278,32 @@ def test_an_earlier_segment_merged_into_the_current_one(session):
     assert len(slam.trajectory(segment=0)) == s["frames_posed"]
     _check_valid(current.slam_map.reconstruction)
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.015
+
+
+def test_pipeline_merges_the_second_visit_into_the_first_map():
+    """With loop closing on (the default), the new segment recognises the first visit's place a few keyframes
+    after it starts and is merged into it: one map, every frame but the noise posed in it, consistent with
+    ground truth after one Sim(3); without loop closing the same run ends in two segments."""
+    src = TwoVisits()
+    slam = Slam(src, SlamConfig(max_lost_frames=5).with_overrides(init_frames=10))
+    merges = [r for r in slam if r.map_merge is not None]
+    slam.finish()
+    s = slam.summary()
+    assert len(merges) == 1 and s["merges"] == 1 and len(s["segments"]) == 1
+    m, entry = merges[0], s["map_merges"][0]
+    assert (m.map_merge.source, m.map_merge.target, entry["segment"], entry["into"]) == (1, 0, 1, 0)
+    assert m.merge_candidate is not None and m.merge_candidate.inliers >= 30
+    assert 40 <= ORDER[entry["candidate_frame"]] < 80  # a keyframe of the first visit's overlap (frames 40-79)
+    assert "merged into segment 0" in str(m)
+    assert m.frame_index == entry["query_frame"] < 88 + 60  # soon after the second visit starts (frame 88)
+    traj = slam.trajectory()
+    assert len(traj) >= len(ORDER) - 8 - 2  # all but the noise (and the frames lost on it)
+    res = ate(traj, src.ground_truth())
+    assert res.rmse < 0.03 * _extent(src), res  # one consistent map: 1.6 cm here
+    assert slam.state.segment is slam.segments[0] and slam.segments[1].merged_into == 0
+
+
+def _extent(src) -> float:
+    """Ground-truth path extent (m): the ATE bound scales with it."""
+    c = src.gt_poses[:, :3, 3]
+    return float(np.linalg.norm(c.max(0) - c.min(0)))

@@ -59,8 +59,8 @@ def save_run(slam: "Slam", out_dir: str | Path, session: bool = True, overwrite:
 
 def _write_run(slam: "Slam", tmp: Path, session: bool) -> None:
     _write_segment(slam, None, tmp)
-    if len(slam.segments) > 1:
-        for seg in slam.segments:
+    if len(slam.state.live_segments) > 1:
+        for seg in slam.state.live_segments:  # a merged segment is part of the one it was merged into
             _write_segment(slam, seg.id, tmp / "segments" / f"segment_{seg.id:02d}")
     summary = slam.summary()
     errors = getattr(slam, "errors", {})

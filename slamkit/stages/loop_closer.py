@@ -61,6 +61,10 @@ class LoopClosingConfig:
     min_keyframes: int = 12
     """No detection before the segment has this many keyframes, nor within this many keyframes after a
     closure (ORB-SLAM: 10)."""
+    merge_min_keyframes: int = 5
+    """A segment with fewer keyframes than ``min_keyframes`` looks for places of earlier segments (map
+    merging) once it has this many: a new segment after tracking was lost is usually still where the old map
+    ends, and would pass the place before it has ``min_keyframes``."""
     neighbour_weight: int = 15
     """Covisible keyframes sharing at least this many points set the minimum score (ORB-SLAM: 15)."""
     group_span: int = 5
@@ -76,6 +80,11 @@ class LoopClosingConfig:
     loop_group: int = 5
     """Loop edges join the query and its most covisible keyframes to the candidate and its (this many each)."""
     verification: LoopVerificationConfig = field(default_factory=lambda: LoopVerificationConfig(max_trials=500))
+    merge_verification: LoopVerificationConfig = field(default_factory=lambda: LoopVerificationConfig(
+        max_trials=500, min_inlier_ratio=0.1, scale_range=(1e-3, 1e3)))
+    """Verification of a place of another segment (map merging): any scale (each segment has its own
+    monocular unit), and a smaller inlier ratio, as the query's points are matched with a whole stretch of the
+    other map of which only the part in view overlaps."""
     min_inliers: int = 30
     """Sim(3) inliers a loop needs (on top of ``verification``'s own thresholds)."""
     max_postings: int = 200_000
@@ -87,7 +96,7 @@ class LoopClosingConfig:
         for name in ("query_candidates", "max_verifications", "loop_group", "min_inliers", "max_postings"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"loop_closing.{name} must be >= 1 (got {getattr(self, name)})")
-        for name in ("min_consistency", "recent_keyframes", "min_keyframes", "neighbour_weight",
+        for name in ("min_consistency", "recent_keyframes", "min_keyframes", "merge_min_keyframes", "neighbour_weight",
                      "covisibility_weight", "group_span", "candidate_neighbours"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"loop_closing.{name} must be >= 0 (got {getattr(self, name)})")
@@ -216,10 +225,14 @@ class LoopCloser:
         c = self.config
         slam_map = seg.slam_map
         since = image_id - max(state.last_loop_image_id, 0) if state.last_loop_segment == seg.id else image_id
-        if slam_map.num_keyframes < c.min_keyframes or since < c.min_keyframes:
+        young = slam_map.num_keyframes < c.min_keyframes or since < c.min_keyframes
+        others = any(s is not seg and s.merged_into < 0 for s in state.segments)
+        if young and (not others or slam_map.num_keyframes < c.merge_min_keyframes):
             state.loop_groups = ()
             return LoopClosingResult(reason="too few keyframes")
         candidates = self._candidates(seg, image_id, key, bow)
+        if young:  # a young map may recognise an earlier segment (and merge), not close a loop in itself
+            candidates = [k for k in candidates if self._where[k][0] != seg.id]
         groups = {cand: self._group(cand) for cand in candidates}
         state.loop_groups, consistent = update_consistent_groups(state.loop_groups, groups, c.min_consistency)
         if not consistent:
@@ -285,9 +298,10 @@ class LoopCloser:
         if cand_seg is seg:  # points both keyframes already share are no evidence of a loop
             keep = ~np.isin(c_ids, q_ids)
             c_ids, c_desc = c_ids[keep], c_desc[keep]
+        check = c.verification if cand_seg is seg else c.merge_verification
         verification, pairs = verify_loop_candidate(
             seg.slam_map.points_xyz(q_ids), q_desc, cand_seg.slam_map.points_xyz(c_ids), c_desc, binary,
-            replace(c.verification, min_inliers=max(c.verification.min_inliers, c.min_inliers)))
+            replace(check, min_inliers=max(check.min_inliers, c.min_inliers)))
         if not verification.accepted:
             return None
         inl = pairs[verification.inlier_mask]

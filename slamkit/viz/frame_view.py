@@ -174,7 +174,7 @@ def summary_numbers(slam: "Slam", reprojection_error: float | None = None) -> di
         "points": m.num_points if m is not None else 0,
         "reprojection_error_px": float(reprojection_error),
         "lost": sum(r.status == "lost" for r in slam.records),
-        "segments": len(slam.segments),
+        "segments": len(slam.state.live_segments),
         "fps": n / slam.wall_time if slam.wall_time > 0 else 0.0,
     }
 
