@@ -1,32 +1,40 @@
 """Synthetic sequences with exact ground truth, and the embedded default sequence.
 
 Tests and the demo run without any dataset: frames are rendered from a textured room
-(:func:`~slamkit.sources.scene.default_room`) with exact intrinsics and poses (:mod:`slamkit.sources.scene`
-explains the renderer). Specs understood by :func:`open_synthetic` (and by ``open_source``)::
+(:func:`~slamkit.sources.scene.default_room`), a street (:func:`~slamkit.sources.street.street_scene`) or a
+repeated-texture corridor (:func:`~slamkit.sources.corridor.corridor_scene`) with exact intrinsics and poses
+(:mod:`slamkit.sources.scene` explains the renderer); the motion decides the scene. Specs understood by
+:func:`open_synthetic` (and by ``open_source``)::
 
     default                          the embedded default sequence: 360 frames, 640x480, a hand-held loop
                                      through the room; rendered once and cached on disk as JPEG + TUM files
     synthetic:<motion>               a sequence rendered on the fly, e.g. ``synthetic:sideways``
     synthetic:<motion>?k=v&k=v       with parameters, e.g. ``synthetic:handheld?frames=200&seed=1``
 
-Motions (:data:`MOTIONS`, defined in :mod:`slamkit.sources.motions`): ``sideways``, ``forward``, ``orbit``,
-``rotation`` (pure rotation, zero baseline), ``translate-then-rotate`` (sideways, then pure rotation in place:
-degenerate motion after initialization), ``loop`` (returns exactly to its start), ``handheld`` (smooth
-random motion), the hard motions of issue 17 ``fast-forward`` (``forward`` at 0.25 m per frame, with a
+Motions in the room (:data:`MOTIONS`, defined in :mod:`slamkit.sources.motions`): ``sideways``, ``forward``,
+``orbit``, ``rotation`` (pure rotation, zero baseline), ``translate-then-rotate`` (sideways, then pure rotation
+in place: degenerate motion after initialization), ``loop`` (returns exactly to its start), ``handheld``
+(smooth random motion), the hard motions of issue 17 ``fast-forward`` (``forward`` at 0.25 m per frame, with a
 sideways drift), ``fast-yaw`` (quick turns at a fixed yaw rate in degrees per frame while walking slowly)
 and ``jerky`` (hand-held with sudden jumps: several frames of motion in one), and ``default`` (the motion of
 the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence before JPEG
-compression). Parameters of every motion:
+compression). Motions through their own scene (:data:`SCENE_MOTIONS`): ``street-drive`` (driving down a
+street at ``speed`` metres per frame, default 1.0 as KITTI at frame skip 2; :mod:`slamkit.sources.street`)
+and ``corridor-walk`` (a straight walk down a corridor whose walls repeat one tile: perceptual aliasing
+without any revisit; :mod:`slamkit.sources.corridor`). Parameters of every motion:
 
     frames=N     number of frames (>= 2; each motion has its own default)
     seed=S       integer seed of random motions and of the image noise (default 0)
     fps=F        frame rate; timestamps are ``index / fps`` seconds (default 30)
     noise=SIGMA  Gaussian image noise in grey levels (default 0: noise-free)
-    scale=K      image size factor of the 640x480 camera (default 1; intrinsics scaled accordingly)
+    scale=K      image size factor of the camera (default 1; intrinsics scaled accordingly)
+    wide=1       KITTI's camera, 1226x370 with fx = fy = 707 px (default 0: 640x480, fx = fy = 500 px)
 
 plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
-``jitter``, ``weave``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion function in
-:mod:`slamkit.sources.motions`). An unknown motion or parameter, or a bad value, raises ConfigError.
+``jitter``, ``weave``, ``sway``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion
+function in :mod:`slamkit.sources.motions`, :mod:`~slamkit.sources.street` and
+:mod:`~slamkit.sources.corridor`). An unknown motion or parameter, or a bad value, raises ConfigError.
+For example ``synthetic:street-drive?frames=120&speed=1.5&seed=2`` or ``synthetic:corridor-walk?frames=300``.
 
 World frame: z up, metres, floor at z = 0; poses are camera-to-world with OpenCV camera axes.
 
@@ -47,6 +55,7 @@ import shutil
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -59,12 +68,24 @@ from .base import FrameSource, ImageListSource, select
 from .folder import image_size, resolve_camera
 from .motions import (DEFAULT_FRAMES, MOTIONS, _check_positive, default_motion, forward, handheld,  # noqa: F401
                       loop, orbit, rotation, sideways, translate_then_rotate)
+from .corridor import corridor_scene, corridor_walk
 from .scene import Rendering, Scene, default_room, project
+from .street import street_drive, street_scene
 
 log = logging.getLogger(__name__)
 
 DEFAULT_CAMERA = Intrinsics(640, 480, 500.0, 500.0, 319.5, 239.5)
 """Camera of the synthetic sequences: 640x480 pinhole, fx = fy = 500 px (65 x 51 degrees), no distortion."""
+
+WIDE_CAMERA = Intrinsics(1226, 370, 707.0912, 707.0912, 601.8873, 183.1104)
+"""Camera of ``wide=1``: KITTI odometry's left grey camera of sequences 04-12 (1226x370, 82 x 29 degrees)."""
+
+SCENE_MOTIONS: dict[str, tuple[Callable[..., np.ndarray], Callable[[], Scene]]] = {
+    "street-drive": (street_drive, street_scene),
+    "corridor-walk": (corridor_walk, corridor_scene),
+}
+"""Motions through a scene of their own: name -> (motion ``(n, ...) -> (N, 4, 4)`` camera-to-world poses,
+the scene factory). The motions of :data:`MOTIONS` go through the default room."""
 
 DEFAULT_VERSION = "default-v2"
 """Name of the cache folder of the default sequence; change it whenever the renderer or scene changes."""
@@ -159,16 +180,16 @@ class SyntheticSource(FrameSource):
 
 
 def synthetic_source(motion: str = "default", *, frames: int | None = None, seed: int = 0,
-                     fps: float = DEFAULT_FPS, noise: float = 0.0, scale: float = 1.0, frame_skip: int = 1,
-                     max_frames: int | None = None, **motion_kw) -> SyntheticSource:
-    """A :class:`SyntheticSource` of the default room for a named motion of :data:`MOTIONS`.
+                     fps: float = DEFAULT_FPS, noise: float = 0.0, scale: float = 1.0, wide: int = 0,
+                     frame_skip: int = 1, max_frames: int | None = None, **motion_kw) -> SyntheticSource:
+    """A :class:`SyntheticSource` for a named motion of :data:`MOTIONS` (in the default room) or of
+    :data:`SCENE_MOTIONS` (in its own scene).
 
     ``frames`` defaults to the motion's own default; ``seed`` goes to the motion (when it is random) and to
-    the image noise; ``motion_kw`` are the motion function's keyword parameters.
+    the image noise; ``wide=1`` renders with :data:`WIDE_CAMERA` instead of :data:`DEFAULT_CAMERA`;
+    ``motion_kw`` are the motion function's keyword parameters.
     """
-    if motion not in MOTIONS:
-        raise ConfigError(f"unknown synthetic motion {motion!r}; choose from {', '.join(MOTIONS)}")
-    fn = MOTIONS[motion]
+    fn, make_scene = _motion(motion)
     params = inspect.signature(fn).parameters
     unknown = sorted(set(motion_kw) - (set(params) - {"n", "seed"}))
     if unknown:
@@ -182,18 +203,34 @@ def synthetic_source(motion: str = "default", *, frames: int | None = None, seed
     scale = _check_positive("scale", scale)
     if scale > 4:
         raise ConfigError(f"scale must be <= 4 (got {scale})")
-    camera = DEFAULT_CAMERA if scale == 1 else DEFAULT_CAMERA.scaled(scale)
+    if wide not in (0, 1):
+        raise ConfigError(f"wide must be 0 or 1 (got {wide})")
+    camera = WIDE_CAMERA if wide else DEFAULT_CAMERA
+    camera = camera if scale == 1 else camera.scaled(scale)
     poses = fn(**kw)
     label = motion if not motion_kw and frames is None else f"{motion}({len(poses)})"
-    return SyntheticSource(default_room(), poses, camera, fps=fps, seed=seed, noise=noise, frame_skip=frame_skip,
+    return SyntheticSource(make_scene(), poses, camera, fps=fps, seed=seed, noise=noise, frame_skip=frame_skip,
                            max_frames=max_frames, name=f"synthetic/{label}")
 
 
-_COMMON = ("frames", "seed", "fps", "noise", "scale")
+_COMMON = ("frames", "seed", "fps", "noise", "scale", "wide")
+
+
+def _motion(name: str) -> tuple[Callable[..., np.ndarray], Callable[[], Scene]]:
+    """(motion function, scene factory) of a motion name; ConfigError for an unknown one."""
+    if name in MOTIONS:
+        return MOTIONS[name], default_room
+    if name in SCENE_MOTIONS:
+        return SCENE_MOTIONS[name]
+    raise ConfigError(f"unknown synthetic motion {name!r}; choose from {', '.join(_motion_names())}")
+
+
+def _motion_names() -> list[str]:
+    return list(MOTIONS) + [m for m in SCENE_MOTIONS if m not in MOTIONS]
 
 
 def _accepted(motion: str) -> list[str]:
-    own = [p for p in inspect.signature(MOTIONS[motion]).parameters if p not in ("n", "seed")]
+    own = [p for p in inspect.signature(_motion(motion)[0]).parameters if p not in ("n", "seed")]
     return list(_COMMON) + own
 
 
@@ -205,8 +242,8 @@ def parse_spec(spec: str) -> tuple[str, dict[str, float | int]]:
     body = text[len("synthetic:"):]
     motion, _, query = body.partition("?")
     motion = motion.strip()
-    if motion not in MOTIONS:
-        raise ConfigError(f"{spec!r}: unknown synthetic motion {motion!r}; choose from {', '.join(MOTIONS)} "
+    if motion not in MOTIONS and motion not in SCENE_MOTIONS:
+        raise ConfigError(f"{spec!r}: unknown synthetic motion {motion!r}; choose from {', '.join(_motion_names())} "
                           "(e.g. 'synthetic:handheld?frames=200&seed=1')")
     params: dict[str, float | int] = {}
     accepted = _accepted(motion)
@@ -224,7 +261,7 @@ def parse_spec(spec: str) -> tuple[str, dict[str, float | int]]:
             number = float(value)
         except ValueError:
             raise ConfigError(f"{spec!r}: parameter {key}={value!r} is not a number") from None
-        if key in ("frames", "seed"):
+        if key in ("frames", "seed", "wide"):
             if not number.is_integer():
                 raise ConfigError(f"{spec!r}: parameter {key}={value!r} must be an integer")
             number = int(number)
@@ -414,8 +451,8 @@ def open_default(*, frame_skip: int = 1, max_frames: int | None = None) -> Image
 
 
 __all__ = [
-    "DEFAULT_CAMERA", "DEFAULT_VERSION", "MOTIONS", "SyntheticSource", "cache_root", "default_motion",
-    "default_sequence_dir", "default_source", "ensure_default_sequence", "forward", "handheld", "loop",
-    "open_default", "open_synthetic", "open_tum_sequence", "orbit", "parse_spec", "rotation", "sideways",
+    "DEFAULT_CAMERA", "DEFAULT_VERSION", "MOTIONS", "SCENE_MOTIONS", "SyntheticSource", "WIDE_CAMERA", "cache_root",
+    "default_motion", "default_sequence_dir", "default_source", "ensure_default_sequence", "forward", "handheld",
+    "loop", "open_default", "open_synthetic", "open_tum_sequence", "orbit", "parse_spec", "rotation", "sideways",
     "synthetic_source", "translate_then_rotate", "write_tum_sequence",
 ]

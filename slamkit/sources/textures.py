@@ -269,3 +269,158 @@ def books(h: int, w: int, rng: np.random.Generator, tpm: float) -> np.ndarray:
             if rng.random() < 0.06:
                 x += int(rng.uniform(0.05, 0.15) * tpm)  # a gap
     return canvas
+
+
+# ----------------------------------------------------------------------------------------------------------
+# outdoor surfaces of the street scene (slamkit.sources.street)
+
+
+def brick(h: int, w: int, rng: np.random.Generator, tpm: float, colour=(60, 80, 150)) -> np.ndarray:
+    """(h, w, 3) uint8 BGR brick wall at ``tpm`` texels per metre: 0.25 x 0.075 m bricks in running bond,
+    each with its own tint around ``colour``, grey mortar joints and a fine grain."""
+    bw, bh = max(int(0.25 * tpm), 4), max(int(0.075 * tpm), 3)
+    rows, cols = -(-h // bh) + 1, -(-w // bw) + 2
+    tints = np.clip(np.asarray(colour, np.float32) * rng.uniform(0.7, 1.25, (rows, cols, 1)).astype(np.float32)
+                    + rng.uniform(-12, 12, (rows, cols, 3)).astype(np.float32), 0, 255)
+    r = np.arange(h) // bh
+    shift = np.where(r % 2 == 1, bw // 2, 0)
+    c = (np.arange(w)[None, :] + shift[:, None]) // bw
+    img = tints[r[:, None], c]
+    grain = value_noise(h, w, rng, 1) * np.float32(0.25) + np.float32(0.875)
+    img *= grain[..., None]
+    joint = max(bh // 6, 1)
+    img[(np.arange(h) % bh) < joint] = (150, 155, 160)
+    mortar = ((np.arange(w)[None, :] + shift[:, None]) % bw) < joint
+    img[mortar] = (150, 155, 160)
+    return cv2.convertScaleAbs(img)
+
+
+def _window(img: np.ndarray, rng: np.random.Generator, x: int, y: int, w: int, h: int, frame_colour,
+            tpm: float) -> None:
+    """One window of a facade, in place: frame, glass with reflections, mullions, maybe curtains/blinds."""
+    f = max(int(0.06 * tpm), 2)
+    w, h = min(w, img.shape[1] - x - 2 * f), min(h, img.shape[0] - y - 2 * f)
+    if w < 4 or h < 4:
+        return
+    img[y - f:y + h + f, x - f:x + w + f] = frame_colour
+    glass = fractal_noise(h, w, rng, largest=max(w // 2, 4), smallest=2, roughness=0.7)
+    base = np.array([70, 60, 45], np.float32) * np.float32(rng.uniform(0.6, 1.5))
+    img[y:y + h, x:x + w] = cv2.convertScaleAbs(base[None, None, :] * (0.6 + 0.9 * glass[..., None]))
+    if rng.random() < 0.5:  # curtains or a blind, drawn to a random height
+        depth = int(h * rng.uniform(0.15, 0.9))
+        img[y:y + depth, x:x + w] = mix_colours(random_colour(rng, 60, 240), (200, 200, 200), 0.3)
+        for k in range(0, depth, max(int(0.05 * tpm), 3)):
+            img[y + k, x:x + w] = (img[y + k, x:x + w] * 0.8).astype(np.uint8)
+    if rng.random() < 0.3:  # a pot, a sticker, a lamp behind the glass
+        shapes(img[y:y + h, x:x + w], rng, 2, (max(w // 8, 2), max(w // 3, 3)), alpha=(0.8, 1.0))
+    m = max(f // 2, 1)
+    kind = int(rng.integers(0, 3))
+    if kind >= 1:
+        img[y:y + h, x + w // 2 - m // 2:x + w // 2 + m] = frame_colour
+    if kind == 2:
+        img[y + h // 3:y + h // 3 + m, x:x + w] = frame_colour
+    sill = max(int(0.05 * tpm), 2)
+    img[y + h + f:y + h + f + sill, x - 2 * f:x + w + 2 * f] = mix_colours(frame_colour, (230, 230, 230), 0.5)
+
+
+def facade(h: int, w: int, rng: np.random.Generator, tpm: float, *, storey: float = 3.2,
+           spacing: float = 2.8) -> np.ndarray:
+    """(h, w, 3) uint8 BGR front of a town house, ``tpm`` texels per metre (rows from the roof down to the
+    ground): plaster or brick, a cornice, string courses between storeys of ``storey`` metres, windows
+    every ``spacing`` metres (each with its own glass, curtains and mullions), and a ground floor with
+    shop windows, a door, a sign with lettering, posters and stains. Everything is drawn from ``rng``, so
+    every building differs."""
+    if rng.random() < 0.4:
+        img = brick(h, w, rng, tpm, random_colour(rng, 40, 170))
+    else:
+        img = base_surface(h, w, rng, random_colour(rng, 110, 235), contrast=0.12, grain=0.06,
+                           largest=int(2 * tpm))
+    frame_colour = random_colour(rng, 20, 240)
+    st, sp = int(storey * tpm), int(spacing * tpm)
+    cornice = int(0.4 * tpm)
+    img[:cornice] = (img[:cornice] * rng.uniform(0.5, 0.8)).astype(np.uint8)
+    img[cornice - 4:cornice] = 40
+    ground = h - int(1.1 * st)  # top of the ground floor
+    win_w, win_h = int(rng.uniform(0.8, 1.4) * tpm), int(rng.uniform(1.2, 1.7) * tpm)
+    offset = int(rng.uniform(0.3, 0.7) * sp)
+    for top in range(ground - st, cornice - st // 2, -st):
+        band = max(int(0.12 * tpm), 3)
+        img[top + st - band:top + st] = (img[top + st - band:top + st] * 0.75).astype(np.uint8)
+        y = top + int(0.35 * tpm)
+        for x in range(offset, w - win_w - 4, sp):
+            if y - 8 > cornice and rng.random() < 0.95:
+                _window(img, rng, x, y, win_w, win_h, frame_colour, tpm)
+    _ground_floor(img, rng, ground, tpm)
+    return img
+
+
+def _ground_floor(img: np.ndarray, rng: np.random.Generator, top: int, tpm: float) -> None:
+    """Shop windows, a door, a sign band with lettering, posters and stains below row ``top``, in place."""
+    h, w = img.shape[:2]
+    sign_h = int(0.6 * tpm)
+    sign = random_colour(rng, 10, 245)
+    img[top:top + sign_h] = sign
+    words = " ".join(str(rng.choice(list(_WORDS))) for _ in range(3)).upper()
+    cv2.putText(img, words, (int(rng.uniform(0.2, 2.0) * tpm), top + int(0.48 * tpm)), cv2.FONT_HERSHEY_DUPLEX,
+                0.45 * tpm / 30.0, mix_colours(sign, (255, 255, 255) if sum(sign) < 380 else (0, 0, 0), 0.85),
+                max(int(0.05 * tpm), 1), cv2.LINE_AA)
+    frame = random_colour(rng, 10, 120)
+    x = int(rng.uniform(0.3, 1.5) * tpm)
+    y0 = top + sign_h + int(0.3 * tpm)
+    while x < w - int(1.5 * tpm):
+        if rng.random() < 0.35:  # a door
+            dw = int(rng.uniform(0.9, 1.4) * tpm)
+            img[y0 - 4:h, x - 4:x + dw + 4] = frame
+            with np.errstate(invalid="ignore"):  # wood() scales unfilled texels before filling them
+                img[y0:h, x:x + dw] = wood(h - y0, dw, rng, max(dw // 4, 2), vertical=True)
+            cv2.circle(img, (x + dw - int(0.15 * tpm), y0 + (h - y0) // 2), max(int(0.04 * tpm), 2),
+                       (190, 200, 210), -1, cv2.LINE_AA)
+            x += dw + int(rng.uniform(0.4, 1.5) * tpm)
+        else:  # a shop window
+            ww = int(rng.uniform(1.2, 3.0) * tpm)
+            bottom = h - int(rng.uniform(0.3, 0.6) * tpm)
+            _window(img, rng, x, y0, ww, bottom - y0, frame, tpm)
+            shapes(img[y0:bottom, x:x + ww], rng, int(rng.integers(3, 10)), (int(0.1 * tpm), int(0.5 * tpm)),
+                   alpha=(0.8, 1.0))  # goods on display
+            x += ww + int(rng.uniform(0.5, 1.5) * tpm)
+    notes(img, rng, int(rng.integers(1, 5)), (int(0.3 * tpm), int(0.6 * tpm)))  # posters
+    stains = img[top + sign_h:]
+    shapes(stains, rng, int(w / tpm), (int(0.1 * tpm), int(0.6 * tpm)), lambda r: random_colour(r, 0, 256),
+           alpha=(0.2, 0.5))
+
+
+def asphalt(h: int, w: int, rng: np.random.Generator, tpm: float) -> np.ndarray:
+    """(h, w, 3) uint8 BGR asphalt at ``tpm`` texels per metre: grey with gravel grain, darker patches,
+    repair seams, cracks and a few manhole covers."""
+    img = base_surface(h, w, rng, (92, 95, 98), contrast=0.2, grain=0.18, largest=int(4 * tpm))
+    for _ in range(int(h * w / tpm**2 / 30) + 1):  # patches of newer asphalt
+        x, y = int(rng.integers(0, w)), int(rng.integers(0, h))
+        pw, ph = int(rng.uniform(0.5, 3.0) * tpm), int(rng.uniform(0.5, 3.0) * tpm)
+        img[y:y + ph, x:x + pw] = (img[y:y + ph, x:x + pw] * rng.uniform(0.6, 0.85)).astype(np.uint8)
+    for _ in range(int(h * w / tpm**2 / 8) + 1):  # cracks
+        steps = rng.normal(0, 0.15 * tpm, (int(rng.integers(4, 12)), 2)).cumsum(0)
+        pts = (steps + (rng.integers(0, w), rng.integers(0, h))).astype(np.int32)
+        cv2.polylines(img, [pts], False, (40, 42, 45), max(int(0.015 * tpm), 1), cv2.LINE_AA)
+    for _ in range(int(rng.integers(0, 2))):  # a manhole
+        x, y, r = int(rng.integers(0, w)), int(rng.integers(0, h)), int(0.3 * tpm)
+        cv2.circle(img, (x, y), r, (55, 58, 60), -1, cv2.LINE_AA)
+        for k in range(-r, r, max(int(0.06 * tpm), 2)):
+            cv2.line(img, (x - r, y + k), (x + r, y + k), (85, 88, 90), 1, cv2.LINE_AA)
+        cv2.circle(img, (x, y), r, (30, 30, 30), max(int(0.03 * tpm), 1), cv2.LINE_AA)
+    return img
+
+
+def paving(h: int, w: int, rng: np.random.Generator, tpm: float, slab: float = 0.5) -> np.ndarray:
+    """(h, w, 3) uint8 BGR pavement of ``slab``-metre concrete slabs (each its own tint), grain, joints and
+    stains, at ``tpm`` texels per metre."""
+    s = max(int(slab * tpm), 4)
+    rows, cols = -(-h // s), -(-w // s)
+    tint = rng.uniform(0.8, 1.15, (rows, cols)).astype(np.float32)
+    img = base_surface(h, w, rng, (165, 170, 172), contrast=0.1, grain=0.15, largest=s)
+    f = cv2.resize(tint, (cols * s, rows * s), interpolation=cv2.INTER_NEAREST)[:h, :w]
+    img = cv2.convertScaleAbs(img.astype(np.float32) * f[..., None])
+    img[(np.arange(h) % s) < 2] = 90
+    img[:, (np.arange(w) % s) < 2] = 90
+    shapes(img, rng, int(h * w / tpm**2), (int(0.05 * tpm), int(0.4 * tpm)), lambda r: random_colour(r, 40, 160),
+           alpha=(0.2, 0.5))
+    return img
