@@ -85,6 +85,12 @@ class LoopClosingConfig:
     """Verification of a place of another segment (map merging): any scale (each segment has its own
     monocular unit), and a smaller inlier ratio, as the query's points are matched with a whole stretch of the
     other map of which only the part in view overlaps."""
+    max_correction: float = 0.3
+    """A loop may move the query keyframe by at most this fraction of the path the camera travelled since the
+    candidate keyframe. Drift grows slowly with the path (monocular SLAM: a few per cent); a verified Sim(3)
+    that jumps much farther matched a different place that looks the same (a corridor of identical doors
+    repeats a whole stretch of 3D structure, so the Sim(3) itself cannot tell). Not applied to places of
+    other segments, whose maps are unrelated."""
     min_inliers: int = 30
     """Sim(3) inliers a loop needs (on top of ``verification``'s own thresholds)."""
     max_postings: int = 200_000
@@ -96,6 +102,8 @@ class LoopClosingConfig:
         for name in ("query_candidates", "max_verifications", "loop_group", "min_inliers", "max_postings"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"loop_closing.{name} must be >= 1 (got {getattr(self, name)})")
+        if not self.max_correction > 0:
+            raise ConfigError(f"loop_closing.max_correction must be > 0 (got {self.max_correction})")
         for name in ("min_consistency", "recent_keyframes", "min_keyframes", "merge_min_keyframes", "neighbour_weight",
                      "covisibility_weight", "group_span", "candidate_neighbours"):
             if getattr(self, name) < 0:
@@ -237,14 +245,18 @@ class LoopCloser:
         state.loop_groups, consistent = update_consistent_groups(state.loop_groups, groups, c.min_consistency)
         if not consistent:
             return LoopClosingResult(len(candidates), reason="no consistent candidate")
-        found = None
+        found, aliased = None, 0
         for cand in consistent[:c.max_verifications]:
             found = self._verify(seg, image_id, cand)
+            if found is not None and found.segment is seg and self._drift_ratio(state, seg, image_id, found) > \
+                    c.max_correction:
+                found, aliased = None, aliased + 1
             if found is not None:
                 break
         n_verified = min(len(consistent), c.max_verifications)
         if found is None:
-            return LoopClosingResult(len(candidates), n_verified, reason="no candidate verified")
+            why = f" ({aliased} implausible: perceptual aliasing)" if aliased else ""
+            return LoopClosingResult(len(candidates), n_verified, reason="no candidate verified" + why)
         state.loop_groups = ()
         v = found.verification
         if found.segment is not seg:
@@ -306,6 +318,19 @@ class LoopCloser:
             return None
         inl = pairs[verification.inlier_mask]
         return _Verified(cand_seg, cand_id, verification, np.stack([q_ids[inl[:, 0]], c_ids[inl[:, 1]]], axis=1))
+
+    def _drift_ratio(self, state: "SlamState", seg: "Segment", image_id: int, found: _Verified) -> float:
+        """How far the verified Sim(3) would move the query keyframe, as a fraction of the path the camera
+        travelled in ``seg`` from the candidate keyframe to it (every posed frame's centre in between)."""
+        m = seg.slam_map
+        first, last = sorted((m.keyframes[found.image_id].frame_index, m.keyframes[image_id].frame_index))
+        poses = [state.pose_of(r) for r in state.records[first:last + 1] if r.segment == seg.id]
+        centres = np.array([_center(p) for p in poses if p is not None])
+        path = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()) if len(centres) > 1 else 0.0
+        sim = found.verification.tgt_from_src
+        c_q = _center(_matrix(m.cam_from_world(image_id)))
+        move = float(np.linalg.norm(sim[:3, :3] @ c_q + sim[:3, 3] - c_q))
+        return move / path if path > 0 else float("inf")
 
     # ----------------------------------------------------------------- correction
     def _correct(self, state: "SlamState", seg: "Segment", image_id: int, found: _Verified) -> LoopClosure:
