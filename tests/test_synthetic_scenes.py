@@ -241,10 +241,11 @@ def test_corridor_database_returns_aliased_candidates(corridor_run):
     assert np.mean(np.abs(tiles - np.round(tiles)) < 0.1) > 0.9      # aliased by a whole number of tiles
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="issue 18: verify_loop_candidate accepts aliased candidates down the "
-                   "repeated-texture corridor (measured: 3 of 110 candidates of 15 query keyframes, Sim(3) "
-                   "a translation of 2 tiles = 6.0-6.2 m, ~155 inliers of ~510 matches, inlier ratio 0.30 >= 0.3; "
-                   "all of them consistent over successive keyframes)")
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="issue 18: verify_loop_candidate accepts aliased candidates down the repeated-texture "
+                   "corridor (measured: 3 of 110 candidates of 15 query keyframes, Sim(3) a translation of 2 "
+                   "tiles = 6.0-6.2 m, ~155 inliers of ~510 matches, inlier ratio 0.30 >= 0.3; all of them "
+                   "consistent over successive keyframes)")
 def test_corridor_verification_accepts_no_loop(corridor_run):
     """Issue 18: "a repeated-texture corridor yields no loop". No candidate may pass both the consistency
     check and the Sim(3) verification."""
@@ -254,10 +255,11 @@ def test_corridor_verification_accepts_no_loop(corridor_run):
     assert false_loops == []
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="issue 17: at 0.1 m/frame (seed 0) the initializer takes frames 7 and 19 "
-                   "(1.2 m apart) with 209 inliers and a median parallax of 58 deg -- a wrong two-view geometry "
-                   "-- and the map is wrong from the start: ATE 1.31 m over 6 m (seed 1: frames 11 and 19, "
-                   "ATE 8 mm; 0.06 m/frame: 4 mm; init_frames=8: 2.5 cm over 12 m)")
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="issue 17: at 0.1 m/frame (seed 0) the initializer takes frames 7 and 19 (1.2 m apart) "
+                   "with 209 inliers and a median parallax of 58 deg -- a wrong two-view geometry -- and the map "
+                   "is wrong from the start: ATE 1.31 m over 6 m (seed 1: frames 11 and 19, ATE 8 mm; "
+                   "0.06 m/frame: 4 mm; init_frames=8: 2.5 cm over 12 m)")
 def test_corridor_fast_walk_with_default_initialization():
     """A long room walked at 3 m/s (0.1 m per frame at 30 fps) with the default config."""
     src, slam = _track("synthetic:corridor-walk?frames=60&speed=0.1&noise=1", SlamConfig())
