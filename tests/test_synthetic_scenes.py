@@ -149,6 +149,28 @@ def test_street_drive_at_1_m_per_frame_is_tracked_end_to_end(preset):
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.5                 # metres over 100 m
 
 
+STREET_1_5 = "synthetic:street-drive?frames=100&speed=1.5&noise=1&seed=1"
+"""1.5 m per frame, a start where the default initialization loses the map (seeds 0 and 2 pass)."""
+
+
+def test_street_drive_at_1_5_m_per_frame_with_a_short_initialization():
+    """With 8 initialization frames (12 m of driving) the map is made early enough: measured 100 % posed
+    in one segment, ATE 0.42 m over 150 m (150 frames: 0.60 m over 225 m)."""
+    src, slam = _track(STREET_1_5, SlamConfig().with_overrides(init_frames=8))
+    assert slam.summary()["fraction_posed"] >= 0.98 and len(slam.segments) == 1
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < 1.5                  # metres over 150 m
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="issue 17: at 1.5 m/frame (seed 1) the default 20 initialization frames span 30 m; the "
+                   "initializer takes frames 10 and 13 (129 points, median parallax 1.5 deg), the map has 2 "
+                   "keyframes at frame 19 and frame 20 finds 5 matches to it (< 30): lost for 30 frames, then a "
+                   "new segment (61 % posed, 2 segments; 150 frames: 74 %; the same with the driving preset)")
+def test_street_drive_at_1_5_m_per_frame_with_the_default_config():
+    src, slam = _track(STREET_1_5, SlamConfig())
+    assert slam.summary()["fraction_posed"] >= 0.98 and len(slam.segments) == 1
+
+
 # ---------------------------------------------------------------------------------------------- corridor
 
 
