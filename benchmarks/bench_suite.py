@@ -107,6 +107,8 @@ CASES = [
          what="along the optical axis, forward and back, 0.25 m/frame (median flow ~25 px)"),
     Case("syn-forward-0.5", "fast-forward", "synthetic:fast-forward?frames=80&speed=0.5" + _SYN, quick=True,
          what="along the optical axis, forward and back, 0.5 m/frame (median flow ~48 px)"),
+    Case("syn-street-1.0", "fast-forward", "synthetic:street-drive?frames=150&speed=1.0" + _SYN,
+         what="driving 150 m down the synthetic street at 1.0 m/frame (KITTI at skip 2), 640x480"),
     Case("syn-fast-yaw-10", "fast-yaw", "synthetic:fast-yaw?frames=100&yaw_rate=10&turn=150&hold=0" + _SYN,
          quick=True, what="swings of +-75 deg at 10 deg/frame (~87 px), walking 1 cm/frame"),
     Case("syn-fast-yaw-20", "fast-yaw",

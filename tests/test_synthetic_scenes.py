@@ -7,6 +7,8 @@ and the question is whether verification accepts any of them."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pycolmap
 import pytest
@@ -83,12 +85,16 @@ def test_street_depth_on_a_facade_equals_the_geometry():
     lo, hi = quad.corners.min(axis=0), quad.corners.max(axis=0)
     assert np.all((hits >= lo - 1e-6) & (hits <= hi + 1e-6))
     assert -BUILDING_LINE - 1.5 - 1e-9 <= x_plane <= -BUILDING_LINE
-    # a known point on the facade (its centre) projects where the renderer sees that facade at that depth
-    centre = quad.point(0.5, 0.5)
-    uv, z = project(pose, K, centre[None])
-    u, v = np.round(uv[0]).astype(int)
-    if 0 <= u < K.width and 0 <= v < K.height and rendering.quad[v, u] == q:
-        assert abs(rendering.depth[v, u] - z[0]) < 0.05 * z[0]
+    # known points of the facade project where a ray cast through their (sub-pixel) projection hits them
+    a, b = np.meshgrid(np.linspace(0.05, 0.95, 10), np.linspace(0.05, 0.95, 10))
+    known = quad.point(a.ravel(), b.ravel())
+    uv, z = project(pose, K, known)
+    seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= K.width - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= K.height - 1)
+    hit, hit_depth, hit_quad = src.scene.raycast(pose, K, uv[seen])
+    visible = hit_quad == q                                                  # not hidden by a car or a pole
+    assert visible.sum() >= 10
+    np.testing.assert_allclose(hit[visible], known[seen][visible], atol=1e-9)
+    np.testing.assert_allclose(hit_depth[visible], z[seen][visible], rtol=1e-12)
 
 
 @pytest.mark.parametrize("spec", ["synthetic:street-drive?frames=150&speed=1.0&noise=1",
@@ -109,8 +115,7 @@ def test_street_is_distinctive_and_textured_at_range():
     """Houses differ (no two facades share a texture), and the road and facades have texture detail:
     the renderer's mipmaps keep contrast in view at 5 to 40 m."""
     scene = street_scene()
-    facades = [quad for quad in scene.quads if quad.name.startswith("house_") and "_st" not in quad.name[-6:]
-               and not quad.name.endswith("_end")]
+    facades = [quad for quad in scene.quads if re.fullmatch(r"house_(left|right)_\d+", quad.name)]
     assert len(facades) > 40
     assert len({quad.texture.image.tobytes()[:4096] for quad in facades}) == len(facades)
     src = open_source("synthetic:street-drive?frames=2")
@@ -142,6 +147,28 @@ def test_street_drive_at_1_m_per_frame_is_tracked_end_to_end(preset):
     assert s["fraction_posed"] >= 0.98, [r.status for r in slam.records]
     assert len(slam.segments) == 1
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.5                 # metres over 100 m
+
+
+STREET_1_5 = "synthetic:street-drive?frames=100&speed=1.5&noise=1&seed=1"
+"""1.5 m per frame, a start where the default initialization loses the map (seeds 0 and 2 pass)."""
+
+
+def test_street_drive_at_1_5_m_per_frame_with_a_short_initialization():
+    """With 8 initialization frames (12 m of driving) the map is made early enough: measured 100 % posed
+    in one segment, ATE 0.42 m over 150 m (150 frames: 0.60 m over 225 m)."""
+    src, slam = _track(STREET_1_5, SlamConfig().with_overrides(init_frames=8))
+    assert slam.summary()["fraction_posed"] >= 0.98 and len(slam.segments) == 1
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < 1.5                  # metres over 150 m
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="issue 17: at 1.5 m/frame (seed 1) the default 20 initialization frames span 30 m; the "
+                   "initializer takes frames 10 and 13 (129 points, median parallax 1.5 deg), the map has 2 "
+                   "keyframes at frame 19 and frame 20 finds 5 matches to it (< 30): lost for 30 frames, then a "
+                   "new segment (61 % posed, 2 segments; 150 frames: 74 %; the same with the driving preset)")
+def test_street_drive_at_1_5_m_per_frame_with_the_default_config():
+    src, slam = _track(STREET_1_5, SlamConfig())
+    assert slam.summary()["fraction_posed"] >= 0.98 and len(slam.segments) == 1
 
 
 # ---------------------------------------------------------------------------------------------- corridor
@@ -241,10 +268,11 @@ def test_corridor_database_returns_aliased_candidates(corridor_run):
     assert np.mean(np.abs(tiles - np.round(tiles)) < 0.1) > 0.9      # aliased by a whole number of tiles
 
 
-@pytest.mark.xfail(strict=True, reason="issue 18: verify_loop_candidate accepts aliased candidates down the "
-                   "repeated-texture corridor (measured: 3 of ~50 candidates of 15 query keyframes, Sim(3) "
-                   "a translation of 2 tiles = 6.0-6.2 m, ~155 inliers of ~510 matches, inlier ratio 0.30 >= 0.3; "
-                   "all of them consistent over successive keyframes)")
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="issue 18: verify_loop_candidate accepts aliased candidates down the repeated-texture "
+                   "corridor (measured: 3 of 110 candidates of 15 query keyframes, Sim(3) a translation of 2 "
+                   "tiles = 6.0-6.2 m, ~155 inliers of ~510 matches, inlier ratio 0.30 >= 0.3; all of them "
+                   "consistent over successive keyframes)")
 def test_corridor_verification_accepts_no_loop(corridor_run):
     """Issue 18: "a repeated-texture corridor yields no loop". No candidate may pass both the consistency
     check and the Sim(3) verification."""
@@ -252,3 +280,15 @@ def test_corridor_verification_accepts_no_loop(corridor_run):
     false_loops = [(r["query"], r["candidate"], r["verification"].reason, round(r["apart"], 2))
                    for r in rows if r["accepted"] and r["consistent"]]
     assert false_loops == []
+
+
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="issue 17: at 0.1 m/frame (seed 0) the initializer takes frames 7 and 19 (1.2 m apart) "
+                   "with 209 inliers and a median parallax of 58 deg -- a wrong two-view geometry -- and the map "
+                   "is wrong from the start: ATE 1.31 m over 6 m (seed 1: frames 11 and 19, ATE 8 mm; "
+                   "0.06 m/frame: 4 mm; init_frames=8: 2.5 cm over 12 m)")
+def test_corridor_fast_walk_with_default_initialization():
+    """A long room walked at 3 m/s (0.1 m per frame at 30 fps) with the default config."""
+    src, slam = _track("synthetic:corridor-walk?frames=60&speed=0.1&noise=1", SlamConfig())
+    assert slam.summary()["fraction_posed"] >= 0.98 and len(slam.segments) == 1
+    assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.05

@@ -104,11 +104,11 @@ def corridor_scene(seed: int = 0, texels_per_metre: float = 200.0) -> Scene:
     return Scene(quads, name=f"corridor(seed={seed})", bounds=bounds)
 
 
-def corridor_walk(n: int = 200, speed: float = 0.1, sway: float = 0.15, seed: int = 0) -> np.ndarray:
+def corridor_walk(n: int = 300, speed: float = 0.05, sway: float = 0.15, seed: int = 0) -> np.ndarray:
     """A straight walk down the corridor, never turning back: the camera 1.6 m high looks ahead along +y,
-    ``speed`` metres per frame from y = 2 to 5 m (drawn from ``seed``), swaying ``sway`` metres to the
-    sides (a sine of 7 m period) with the heading following the sway and a slow +-4 degree gaze sweep.
-    The walk must stop 10 m before the far end: ``(n - 1) * speed`` is at most 43 m."""
+    ``speed`` metres per frame (0.05: 1.5 m/s at 30 fps) from y = 2 to 5 m (drawn from ``seed``), swaying
+    ``sway`` metres to the sides (a sine of 7 m period) with the heading following the sway and a slow +-4
+    degree gaze sweep. The walk must stop 10 m before the far end: ``(n - 1) * speed`` is at most 43 m."""
     if int(n) != n or n < 2:
         raise ConfigError(f"frames must be an integer >= 2 (got {n})")
     n = int(n)

@@ -1,6 +1,6 @@
 """A street scene for driving sequences, and the ``street-drive`` camera path.
 
-A straight street along +y, 12 m between the building lines (issue 17: forward motion at about 1 m per
+A straight street along +y, 16 m between the building lines (issue 17: forward motion at about 1 m per
 frame, as KITTI at frame skip 2, with exact ground truth). What a feature detector sees there: town-house
 facades of varied height, set-back, colour and material (plaster or brick), windows with their own glass,
 curtains and mullions, shop fronts with doors, signs and posters (:func:`~slamkit.sources.textures.facade`);
@@ -12,9 +12,9 @@ Geometry (world frame: z up, metres, ground at z = 0): the road spans x in [-:da
 :data:`ROAD_HALF`], sidewalks reach the building line at |x| = :data:`BUILDING_LINE` (facades stand 0 to
 1.5 m behind it), the street runs from y = :data:`STREET_START` to :data:`STREET_END`. Texel density is
 about ``texels_per_metre`` on facades and road (40: a texel of 2.5 cm, 2.5 px at 5 m with the 500 px focal
-length of the synthetic camera, a fifth of a pixel at 60 m where the renderer's mipmaps take over), 1.5 to 2
-times that on cars and signs, which are seen from closer. A fixed sun is baked into the textures as one shading
-factor per facing direction (a brightness-constancy world, as the room).
+length of the synthetic camera, a fifth of a pixel at 60 m where the renderer's mipmaps take over), 1.5 to
+2 times that on cars and signs, which are seen from closer. A fixed sun is baked into the textures as one
+shading factor per facing direction (a brightness-constancy world, as the room).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from ..errors import ConfigError
 from .render import look_at
 from .scene import Scene, box_quads
 from .surfaces import Quad, Texture
-from .textures import (asphalt, base_surface, facade, mix_colours, paving, random_colour, shapes, value_noise)
+from .textures import asphalt, base_surface, facade, mix_colours, paving, random_colour, shapes, value_noise
 
 STREET_START, STREET_END = -40.0, 420.0
 """Extent of the street along y (metres); a building closes it at ``STREET_END``."""

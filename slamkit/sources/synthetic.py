@@ -65,10 +65,10 @@ from ..errors import CalibrationError, ConfigError, FormatError, SourceError
 from ..io.trajectory import read_tum, write_tum
 from ..types import Trajectory
 from .base import FrameSource, ImageListSource, select
+from .corridor import corridor_scene, corridor_walk
 from .folder import image_size, resolve_camera
 from .motions import (DEFAULT_FRAMES, MOTIONS, _check_positive, default_motion, forward, handheld,  # noqa: F401
                       loop, orbit, rotation, sideways, translate_then_rotate)
-from .corridor import corridor_scene, corridor_walk
 from .scene import Rendering, Scene, default_room, project
 from .street import street_drive, street_scene
 
