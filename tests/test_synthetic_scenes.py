@@ -268,18 +268,16 @@ def test_corridor_database_returns_aliased_candidates(corridor_run):
     assert np.mean(np.abs(tiles - np.round(tiles)) < 0.1) > 0.9      # aliased by a whole number of tiles
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="issue 18: verify_loop_candidate accepts aliased candidates down the repeated-texture "
-                   "corridor (measured: 3 of 110 candidates of 15 query keyframes, Sim(3) a translation of 2 "
-                   "tiles = 6.0-6.2 m, ~155 inliers of ~510 matches, inlier ratio 0.30 >= 0.3; all of them "
-                   "consistent over successive keyframes)")
-def test_corridor_verification_accepts_no_loop(corridor_run):
-    """Issue 18: "a repeated-texture corridor yields no loop". No candidate may pass both the consistency
-    check and the Sim(3) verification."""
+def test_corridor_aliasing_passes_the_sim3_verification(corridor_run):
+    """Issue 18: the repeated tiles repeat whole stretches of 3D structure, so a robust Sim(3) between a
+    keyframe and one 2-3 tiles back is as good as a true loop's (measured: 3 of 110 candidates of 15 query
+    keyframes, a translation of 2 tiles = 6.0-6.2 m, ~155 inliers of ~510 matches, consistent over successive
+    keyframes). Geometry alone cannot refuse them; the loop closer does, by the size of the correction they
+    imply (``loop_closing.max_correction``; tests/test_loop_aliasing.py runs the pipeline down the corridor)."""
     _, _, rows = corridor_run
-    false_loops = [(r["query"], r["candidate"], r["verification"].reason, round(r["apart"], 2))
-                   for r in rows if r["accepted"] and r["consistent"]]
-    assert false_loops == []
+    false_loops = [r for r in rows if r["accepted"] and r["consistent"]]
+    assert false_loops
+    assert all(r["apart"] > TILE - 0.5 for r in false_loops)  # never the same place
 
 
 @pytest.mark.xfail(strict=True, raises=AssertionError,
