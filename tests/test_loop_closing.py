@@ -194,3 +194,21 @@ def test_disabled_gives_the_old_behaviour_and_seed_preset_disables():
     assert on.summary()["loop_closures"] == 0
     a, b = on.trajectory(), off.trajectory()
     assert np.array_equal(a.poses, b.poses) and np.array_equal(a.timestamps, b.timestamps)
+
+
+def test_two_lap_loop_closes_through_the_pipeline():
+    """The synthetic room driven round twice: the second lap recognises places of the first (the first
+    closure comes at frame 524); poses stay accurate and every closure is in the result and the summary."""
+    source = open_source("synthetic:loop?frames=600&laps=2&jitter=1&seed=0")
+    slam = Slam(source, SlamConfig())
+    closed = [r for r in slam if r.loop_closure is not None]
+    slam.finish()
+    s = slam.summary()
+    assert closed and s["loop_closures"] == len(closed) == len(s["loop_closure_pairs"])
+    r = closed[0]
+    assert "loop closed: keyframe" in str(r) and r.is_keyframe
+    c = r.loop_closure
+    assert s["loop_closure_pairs"][0]["query_frame"] == c.query_frame == r.frame_index
+    assert c.candidate_frame < c.query_frame - 100 and c.inliers >= 30
+    assert s["frames_posed"] >= 0.98 * s["frames"] and len(s["segments"]) == 1
+    assert ate(source.ground_truth(), slam.trajectory()).rmse < 0.005  # metres, in a 2.4 m x 1 m loop
