@@ -212,3 +212,23 @@ def test_two_lap_loop_closes_through_the_pipeline():
     assert c.candidate_frame < c.query_frame - 100 and c.inliers >= 30
     assert s["frames_posed"] >= 0.98 * s["frames"] and len(s["segments"]) == 1
     assert ate(source.ground_truth(), slam.trajectory()).rmse < 0.005  # metres, in a 2.4 m x 1 m loop
+
+
+def test_session_keeps_loop_closing_state(tmp_path):
+    """A resumed run has the same place database (rebuilt from the keyframes), consistency groups and closures."""
+    from slamkit.loop_verification import ConsistentGroup
+
+    slam = Slam(SPEC, SlamConfig(max_frames=80))
+    slam.run(70)
+    slam.state.loop_groups = (ConsistentGroup(frozenset({3, 9, 14}), 2),)
+    slam.state.loop_closures = [{"segment": 0, "query_frame": 60, "candidate_frame": 2, "inliers": 40,
+                                 "translation_m": 0.01, "rotation_deg": 0.1, "scale": 1.0}]
+    slam.save_session(tmp_path / "s")
+    again = Slam.resume(tmp_path / "s")
+    assert again.state.loop_groups == slam.state.loop_groups
+    assert again.state.loop_closures == slam.state.loop_closures
+    assert again.summary()["loop_closure_pairs"] == slam.summary()["loop_closure_pairs"]
+    db, db2 = slam.loop_closer.database, again.loop_closer.database
+    assert db2.image_ids == db.image_ids and len(db) == slam.slam_map.num_keyframes
+    kf = slam.slam_map.keyframes[slam.state.last_keyframe]
+    assert db2.query(kf.features.descriptors, 5) == db.query(kf.features.descriptors, 5)

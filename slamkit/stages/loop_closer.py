@@ -211,6 +211,9 @@ class LoopCloser:
         ``seg`` is corrected in place (keyframe poses, points, frames' relative poses via ``state``)."""
         if not self.config.enabled:
             return LoopClosingResult(reason="loop closing disabled")
+        for other in sorted(seg.slam_map.keyframes):  # the initial pair's keyframes come without a step
+            if other != image_id and (seg.id, other) not in self._key_of:
+                self.add(seg, other)
         key, bow = self.add(seg, image_id)
         self._segments = state.segments  # candidates may be in any segment
         c = self.config
