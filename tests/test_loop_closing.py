@@ -194,3 +194,41 @@ def test_disabled_gives_the_old_behaviour_and_seed_preset_disables():
     assert on.summary()["loop_closures"] == 0
     a, b = on.trajectory(), off.trajectory()
     assert np.array_equal(a.poses, b.poses) and np.array_equal(a.timestamps, b.timestamps)
+
+
+def test_two_lap_loop_closes_through_the_pipeline():
+    """The synthetic room driven round twice: the second lap recognises places of the first (the first
+    closure comes at frame 524); poses stay accurate and every closure is in the result and the summary."""
+    source = open_source("synthetic:loop?frames=600&laps=2&jitter=1&seed=0")
+    slam = Slam(source, SlamConfig())
+    closed = [r for r in slam if r.loop_closure is not None]
+    slam.finish()
+    s = slam.summary()
+    assert closed and s["loop_closures"] == len(closed) == len(s["loop_closure_pairs"])
+    r = closed[0]
+    assert "loop closed: keyframe" in str(r) and r.is_keyframe
+    c = r.loop_closure
+    assert s["loop_closure_pairs"][0]["query_frame"] == c.query_frame == r.frame_index
+    assert c.candidate_frame < c.query_frame - 100 and c.inliers >= 30
+    assert s["frames_posed"] >= 0.98 * s["frames"] and len(s["segments"]) == 1
+    assert ate(source.ground_truth(), slam.trajectory()).rmse < 0.005  # metres, in a 2.4 m x 1 m loop
+
+
+def test_session_keeps_loop_closing_state(tmp_path):
+    """A resumed run has the same place database (rebuilt from the keyframes), consistency groups and closures."""
+    from slamkit.loop_verification import ConsistentGroup
+
+    slam = Slam(SPEC, SlamConfig(max_frames=80))
+    slam.run(70)
+    slam.state.loop_groups = (ConsistentGroup(frozenset({3, 9, 14}), 2),)
+    slam.state.loop_closures = [{"segment": 0, "query_frame": 60, "candidate_frame": 2, "inliers": 40,
+                                 "translation_m": 0.01, "rotation_deg": 0.1, "scale": 1.0}]
+    slam.save_session(tmp_path / "s")
+    again = Slam.resume(tmp_path / "s")
+    assert again.state.loop_groups == slam.state.loop_groups
+    assert again.state.loop_closures == slam.state.loop_closures
+    assert again.summary()["loop_closure_pairs"] == slam.summary()["loop_closure_pairs"]
+    db, db2 = slam.loop_closer.database, again.loop_closer.database
+    assert db2.image_ids == db.image_ids and len(db) == slam.slam_map.num_keyframes
+    kf = slam.slam_map.keyframes[slam.state.last_keyframe]
+    assert db2.query(kf.features.descriptors, 5) == db.query(kf.features.descriptors, 5)

@@ -219,8 +219,9 @@ class LoopCloser:
         self.database, self._where, self._key_of = None, {}, {}
         if not self.config.enabled:
             return
-        for key, seg, image_id in sorted((kf.frame_index, s, i) for s in segments for i, kf in s.slam_map.keyframes.items()):
-            self.add(seg, image_id)
+        keyframes = sorted((kf.frame_index, s.id, i) for s in segments for i, kf in s.slam_map.keyframes.items())
+        for _, seg_id, image_id in keyframes:
+            self.add(segments[seg_id], image_id)
 
     # ----------------------------------------------------------------- one keyframe
     def step(self, state: "SlamState", seg: "Segment", image_id: int) -> LoopClosingResult:
@@ -228,6 +229,9 @@ class LoopCloser:
         ``seg`` is corrected in place (keyframe poses, points, frames' relative poses via ``state``)."""
         if not self.config.enabled:
             return LoopClosingResult(reason="loop closing disabled")
+        for other in sorted(seg.slam_map.keyframes):  # the initial pair's keyframes come without a step
+            if other != image_id and (seg.id, other) not in self._key_of:
+                self.add(seg, other)
         key, bow = self.add(seg, image_id)
         self._segments = state.segments  # candidates may be in any segment
         c = self.config
@@ -289,8 +293,8 @@ class LoopCloser:
     def _group(self, key: int) -> list[int]:
         """Keys of a candidate's consistency group: the keyframes inserted around it (``group_span``)."""
         seg_id, image_id = self._where[key]
-        return [self._key_of[(seg_id, i)] for i in _around(self._segment(seg_id).slam_map, image_id, self.config.group_span)
-                if (seg_id, i) in self._key_of]
+        around = _around(self._segment(seg_id).slam_map, image_id, self.config.group_span)
+        return [self._key_of[(seg_id, i)] for i in around if (seg_id, i) in self._key_of]
 
     def _segment(self, seg_id: int) -> "Segment":
         return self._segments[seg_id]
