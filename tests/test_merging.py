@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
+from pathlib import Path
 from dataclasses import replace
 
 import cv2
@@ -280,14 +282,21 @@ def test_an_earlier_segment_merged_into_the_current_one(session):
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.015
 
 
-def test_pipeline_merges_the_second_visit_into_the_first_map():
-    """With loop closing on (the default), the new segment recognises the first visit's place a few keyframes
-    after it starts and is merged into it: one map, every frame but the noise posed in it, consistent with
-    ground truth after one Sim(3); without loop closing the same run ends in two segments."""
+@pytest.fixture(scope="module")
+def merged_run():
+    """The whole two-visit sequence with loop closing on (the default): (source, Slam, merge step results)."""
     src = TwoVisits()
     slam = Slam(src, SlamConfig(max_lost_frames=5).with_overrides(init_frames=10))
     merges = [r for r in slam if r.map_merge is not None]
     slam.finish()
+    return src, slam, merges
+
+
+def test_pipeline_merges_the_second_visit_into_the_first_map(merged_run):
+    """With loop closing on (the default), the new segment recognises the first visit's place a few keyframes
+    after it starts and is merged into it: one map, every frame but the noise posed in it, consistent with
+    ground truth after one Sim(3); without loop closing the same run ends in two segments."""
+    src, slam, merges = merged_run
     s = slam.summary()
     assert len(merges) == 1 and s["merges"] == 1 and len(s["segments"]) == 1
     m, entry = merges[0], s["map_merges"][0]
@@ -307,3 +316,30 @@ def _extent(src) -> float:
     """Ground-truth path extent (m): the ATE bound scales with it."""
     c = src.gt_poses[:, :3, 3]
     return float(np.linalg.norm(c.max(0) - c.min(0)))
+
+
+def test_map_view_draws_the_merge_as_a_loop_edge(merged_run, tmp_path):
+    """The 3D view draws a line between the two keyframes that recognised the same place, live and from the
+    saved run: its ends are the two frames' camera centres in the merged map."""
+    from slamkit.viz.meshcat_view import MapView
+    from slamkit.viz.snapshot import state_from_run, state_from_slam
+
+    _, slam, _ = merged_run
+    entry = slam.summary()["map_merges"][0]
+    ends = [np.linalg.inv(slam.pose_of(entry[k]))[:3, 3] for k in ("query_frame", "candidate_frame")]
+    live = state_from_slam(slam)
+    assert live.loop_edges.shape == (1, 2, 3) and np.allclose(live.loop_edges[0], ends, atol=1e-9)
+    run_dir = slam.save(tmp_path / "run")
+    saved = state_from_run(run_dir)
+    assert saved.loop_edges.shape == (1, 2, 3) and np.allclose(saved.loop_edges[0], ends, atol=1e-5)
+    view = MapView()
+    try:
+        view.show(live)
+        assert view.scene_counts()["loops"] == 1
+        sys.path.insert(0, str(Path(__file__).parent))
+        from test_viz import attribute, scene_objects  # the decoder of meshcat's replayed commands
+
+        drawn = attribute(scene_objects(view)["/meshcat/slamkit/path/loops"], "position").T  # (2, 3) vertices
+        assert np.allclose(drawn, ends, atol=1e-4)
+    finally:
+        view.close()

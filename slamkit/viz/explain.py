@@ -87,7 +87,8 @@ def legend_html() -> str:
             f'keyframe to the current frame, {sw("rgb(230,30,30)", "dot")} its current position. '
             f'<b>3D view</b>: points in their image colours; keyframe frustums and camera path by time '
             f'{grad} first &rarr; last; {sw("rgb(26,115,255)")} current frame; {sw("rgb(230,0,230)")} '
-            f'selected track (lines to the keyframes that observe the point).</div>')
+            f'selected track (lines to the keyframes that observe the point); {sw("rgb(0,190,215)")} loop closed '
+            f'(the two keyframes that recognised the same place).</div>')
 
 
 __all__ = ["describe_step", "flow_help_html", "scale_html", "legend_html", "FLOW_SCORE"]

@@ -54,7 +54,7 @@ DEFAULT_TITLE = "slamkit map"
 def legend_text() -> str:
     """What the colours of the 3D view mean (one line, plain text)."""
     return ("map points in their image colours · keyframe frustums and camera path from green (first) through "
-            "yellow to red (last) · current frame blue · selected track magenta · drag to orbit, scroll to zoom")
+            "yellow to red (last) · current frame blue · selected track magenta · loop closures cyan · drag to orbit, scroll to zoom")
 
 
 def captioned_html(page: str, title: str, caption: str) -> str:
@@ -272,8 +272,10 @@ class MapView:
         shown.points.apply(changes)
         st.points = self.num_points
         path_changed = (len(state.path_times) != len(shown.path_t)
-                        or not np.array_equal(state.path_centers, shown.path_c))
+                        or not np.array_equal(state.path_centers, shown.path_c)
+                        or not np.array_equal(state.loop_edges, shown.loop_edges))
         shown.path_t, shown.path_c = state.path_times.copy(), state.path_centers.copy()
+        shown.loop_edges = state.loop_edges.copy()
         refit = shown.refit_needed(full)
         if refit:
             shown.set_fit(refit if isinstance(refit, tuple) else shown.compute_fit(), self.aspect)

@@ -31,6 +31,8 @@ BACKGROUND_RADIUS = 500.0
 
 CURRENT_COLOR = (0.1, 0.45, 1.0)
 TRACK_COLOR = (0.9, 0.0, 0.9)
+LOOP_COLOR = (0.0, 0.75, 0.85)
+"""Loop edges: the two keyframes of each loop closed or place recognised (cyan)."""
 TRACK_POINT_RGB = (230, 0, 230)
 """The tracked point's colour, 0..255 (its lines are :data:`TRACK_COLOR`)."""
 
@@ -313,15 +315,22 @@ def track_lines_object(xyz: np.ndarray, centers: np.ndarray) -> mg.LineSegments:
     return lines_object(v, col)
 
 
+def loop_edges_object(edges: np.ndarray) -> mg.LineSegments:
+    """Loop edges: (L, 2, 3) pairs of keyframe centres, L >= 1, map units, in LOOP_COLOR."""
+    v = np.asarray(edges, np.float64).reshape(-1, 3)
+    return lines_object(v, np.tile(np.array(LOOP_COLOR, np.float32), (len(v), 1)))
+
+
 def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
     """The tracked point xyz (3,) as a single large point."""
     return points_object(xyz[None], np.array([TRACK_POINT_RGB]), size)
 
 
-__all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR", "TRACK_COLOR",
+__all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR", "TRACK_COLOR", "LOOP_COLOR",
            "Camera", "recency_colors", "hex_to_rgb255", "points_object", "lines_object", "background_object",
            "geometry_bytes", "world_from_cam", "time_fractions", "frustum_vertices", "compute_fit", "robust_box",
            "nearest_camera_distance", "home_camera_position", "view_centering", "screen_box", "VIEW_DIRECTION",
            "FIT_PERCENTILES",
            "display_from_map", "keyframes_object", "path_object", "path_vertex_times", "directions_object",
-           "current_frame_object", "track_lines_object", "track_point_object"]
+           "current_frame_object", "track_lines_object", "track_point_object",
+           "loop_edges_object"]

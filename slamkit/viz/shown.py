@@ -39,6 +39,8 @@ class ShownMap:
         """(N, 3) world camera centres of the posed frames."""
         self.current: np.ndarray | None = None
         """(4, 4) world_from_cam of the current non-key frame, or None."""
+        self.loop_edges = np.empty((0, 2, 3))
+        """(L, 2, 3) world centres of the keyframe pairs of the loops closed."""
         self.points = PointStore()
         self.observations: dict[int, np.ndarray] = {}
         """Keyframe -> the point ids it observed when last read in full (to find deleted points)."""

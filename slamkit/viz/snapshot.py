@@ -14,6 +14,8 @@ saved run (:func:`state_from_run`). An update reads from it either
 from __future__ import annotations
 
 import contextlib
+import csv
+import json
 import os
 import tempfile
 from dataclasses import dataclass, field
@@ -40,6 +42,8 @@ class MapState:
     reconstruction: the map (pycolmap); keyframe_ids: (K,) image ids of the keyframes to draw;
     keyframe_times: (K,) seconds; path_times: (N,) seconds and path_centers: (N, 3) world camera centres of
     the posed frames in time order; current: (4, 4) world_from_cam of the current non-key frame, or None;
+    loop_edges: (L, 2, 3) world camera centres of the two keyframes of each loop closed (or place recognised
+    by a merged segment) in this map;
     key: identity of the map — a different key means a different map (new segment, reset, loaded run)
     and everything is sent again.
     """
@@ -51,12 +55,14 @@ class MapState:
     path_centers: np.ndarray = field(default_factory=lambda: np.empty((0, 3)))
     current: np.ndarray | None = None
     key: Any = None
+    loop_edges: np.ndarray = field(default_factory=lambda: np.empty((0, 2, 3)))
 
     def __post_init__(self) -> None:
         self.keyframe_ids = np.asarray(self.keyframe_ids, np.int64).reshape(-1)
         self.keyframe_times = np.asarray(self.keyframe_times, np.float64).reshape(-1)
         self.path_times = np.asarray(self.path_times, np.float64).reshape(-1)
         self.path_centers = np.asarray(self.path_centers, np.float64).reshape(-1, 3)
+        self.loop_edges = np.asarray(self.loop_edges, np.float64).reshape(-1, 2, 3)
         if len(self.keyframe_ids) != len(self.keyframe_times):
             raise ValueError(f"{len(self.keyframe_ids)} keyframe ids but {len(self.keyframe_times)} times")
         if len(self.path_times) != len(self.path_centers):
@@ -76,7 +82,20 @@ def state_from_slam(slam: "Slam") -> MapState | None:
     traj = slam.trajectory(segment=seg.id)
     ids = np.array(sorted(m.keyframes), np.int64)
     times = np.array([m.keyframes[int(i)].timestamp for i in ids])
-    return MapState(m.reconstruction, ids, times, traj.timestamps, traj.positions, current_pose(slam, seg.id), key=m)
+    return MapState(m.reconstruction, ids, times, traj.timestamps, traj.positions, current_pose(slam, seg.id), key=m,
+                    loop_edges=loop_edges(slam, seg.id))
+
+
+def loop_edges(slam: "Slam", segment: int) -> np.ndarray:
+    """(L, 2, 3) world camera centres of the query and candidate keyframes of every loop closure and map
+    merge whose frames are now posed in ``segment`` (by frame index: culling and merging renumber images)."""
+    st = slam.state
+    edges = []
+    for c in [*st.loop_closures, *st.map_merges]:
+        ends = [st.records[int(c[k])] for k in ("query_frame", "candidate_frame")]
+        if all(r.rel_pose is not None and r.segment == segment for r in ends):
+            edges.append([np.linalg.inv(st.pose_of(r))[:3, 3] for r in ends])
+    return np.array(edges, np.float64).reshape(-1, 2, 3)
 
 
 def current_pose(slam: "Slam", segment: int) -> np.ndarray | None:
@@ -125,7 +144,26 @@ def state_from_run(run_dir: str | os.PathLike) -> MapState:
     if times is None:  # no keyframe times: image id order, spread over the path's time span if any
         span = (path_t[0], path_t[-1]) if len(path_t) else (0.0, float(max(len(ids) - 1, 1)))
         times = np.interp(np.arange(len(ids)), [0, max(len(ids) - 1, 1)], span)
-    return MapState(rec, ids, times, path_t, path_c, None, key=rec)
+    return MapState(rec, ids, times, path_t, path_c, None, key=rec,
+                    loop_edges=_saved_loop_edges(run_dir, path_t, path_c))
+
+
+def _saved_loop_edges(run_dir: Path, path_t: np.ndarray, path_c: np.ndarray) -> np.ndarray:
+    """Loop edges of a saved run: the frames of ``summary.json``'s loop closures and merges, found on the
+    trajectory by their timestamps in ``frames.csv`` (none when either file is missing or unreadable)."""
+    try:
+        summary = json.loads((run_dir / "summary.json").read_text())
+        with open(run_dir / "frames.csv", newline="") as f:
+            stamps = {int(row["index"]): float(row["timestamp"]) for row in csv.DictReader(f)}
+    except (OSError, ValueError, KeyError):
+        return np.empty((0, 2, 3))
+    edges = []
+    for c in [*summary.get("loop_closure_pairs", []), *summary.get("map_merges", [])]:
+        at = [np.flatnonzero(np.isclose(path_t, stamps.get(int(c[k]), np.nan), atol=5e-7, rtol=0))
+              for k in ("query_frame", "candidate_frame")]
+        if all(len(a) for a in at):
+            edges.append([path_c[a[0]] for a in at])
+    return np.array(edges, np.float64).reshape(-1, 2, 3)
 
 
 # ---------------------------------------------------------------------------------------------- keyframes
