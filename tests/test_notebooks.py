@@ -96,6 +96,10 @@ def test_notebook_runs(path: Path, tmp_path: Path):
         # Run All ends on a populated app: the last cell ran the new settings to the end
         n_before, n_after = (int(v) for v in re.findall(r"0\.0[58]: (\d+)", text.split("keyframes with")[-1]))
         assert n_after >= 2 and "showing the saved run" in text
+        # the loop-closure section: one closure on the room driven round twice, and an accurate map after it
+        assert "LOOP CLOSED with the keyframe of frame" in text and "loop closures so far: 1" in text
+        loop_rmse = float(re.search(r"AteResult\(rmse=([0-9.e-]+) m", text).group(1))
+        assert loop_rmse < 0.01  # metres, in a 2.4 m x 1 m loop
     if path.stem == "04_features_and_matching":
         assert "epipolar inliers" in plain and "orb" in plain and "sift" in plain and pngs >= 4
         ratios = [float(v) for v in re.findall(r"\b0\.\d{3}\b", plain.split("inlier ratio")[1])[:2]]

@@ -50,6 +50,13 @@ def describe_step(r: "StepResult") -> str:
     parts.append(f"map {r.num_keyframes} keyframes, {r.num_points} points")
     if r.ba:
         parts.append(f"BA: {r.ba}")
+    if r.loop_closure is not None:
+        c = r.loop_closure
+        parts.append(f"LOOP CLOSED with the keyframe of frame {c.candidate_frame} ({c.inliers} of {c.matches} "
+                     f"matched map points agree on one Sim(3); this keyframe moved {c.translation_m:.3g} map units, "
+                     f"{c.rotation_deg:.2f} deg, scale {c.scale:.3f}; {c.fused_points} duplicate points fused)")
+    if r.map_merge is not None:
+        parts.append(f"MAPS MERGED: {r.map_merge.reason}")
     return " · ".join(parts) + f" ({ms})"
 
 
