@@ -47,6 +47,10 @@ class MapperConfig:
     ``slamkit.features.epipolar``): cheaper than brute force, and its ratio test compares a keypoint with
     the few look-alikes on its epipolar line only. Applies to the descriptor matcher (``nn``); learned pair
     matchers match by brute force."""
+    guided_matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.6, max_hamming=50))
+    """Descriptor tests of guided matching (ORB-SLAM's for triangulation: ratio 0.6, 50 bits): among the
+    few candidates on an epipolar line the ratio test is weaker than among all keypoints, and a wrong match
+    along the line still fits the poses, so it is made stricter than ``matching``'s."""
     matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.8, mutual=True))
     compact_dropped: int = 100
     """Images no longer keyframes (culled or rejected) stay in pycolmap's Reconstruction and correspondence
@@ -181,7 +185,7 @@ class Mapper:
             fa, fb = kf.features, frame.features
             pairs = epipolar_match(kf.keypoints[free_n], fa.descriptors[free_n], frame.keypoints[free_c],
                                    fb.descriptors[free_c], fa.binary, cur_from_n, K,
-                                   2 * self.config.max_epipolar_error_px, self.matcher.config)
+                                   2 * self.config.max_epipolar_error_px, self.config.guided_matching)
         else:
             pairs = self.matcher.match(kf.features.subset(free_n), frame.features.subset(free_c))
         new_pairs = np.stack([free_n[pairs[:, 0]], free_c[pairs[:, 1]]], axis=1) if len(pairs) else \
