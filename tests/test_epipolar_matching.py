@@ -87,3 +87,13 @@ def test_guided_matches_contain_the_brute_force_matches_that_fit_the_poses(synth
     assert len(g) >= len(bf), (len(g), len(bf))
     # one-to-one
     assert len(np.unique(guided[:, 0])) == len(guided) == len(np.unique(guided[:, 1]))
+
+
+def test_no_descriptor_close_enough_no_matches():
+    rng = np.random.default_rng(1)
+    x = rng.uniform([0, 0], [1226, 370], (40, 2))
+    d1 = np.zeros((40, 32), np.uint8)
+    d2 = np.full((40, 32), 255, np.uint8)  # 256 bits from every descriptor of image 1
+    T = np.eye(4)
+    T[:3, 3] = (0.1, 0, -1.0)
+    assert epipolar_match(x, d1, x, d2, True, T, K, 4.0).shape == (0, 2)

@@ -151,6 +151,8 @@ def epipolar_match(x1: np.ndarray, desc1: np.ndarray, x2: np.ndarray, desc2: np.
         return np.empty((0, 2), np.int64)
     dist = descriptor_distance(desc1[i], desc2[j], binary)
     ok = dist <= _max_distance(binary, cfg)
+    if not ok.any():
+        return np.empty((0, 2), np.int64)
     i, j, dist = _ratio_test(i[ok], j[ok], dist[ok], cfg.ratio)
     o = np.lexsort((dist, j))  # one keypoint of image 2 per match: the closest descriptor
     i, j = i[o], j[o]
