@@ -41,12 +41,14 @@ class MapperConfig:
     """The smaller triangulation angle of a starving keyframe, degrees (see ``starved_points``); the
     bundle adjustment after it filters points by this angle too (``ba.min_tri_angle_deg`` otherwise), or it
     would remove them again. Lowering both angles for every keyframe instead cost 7-Scenes accuracy."""
-    guided: bool = True
+    guided: bool = False
     """Match a new keyframe with a neighbour only among keypoint pairs near each other's epipolar line of the
     known poses (within twice ``max_epipolar_error_px``, in front of both cameras;
-    ``slamkit.features.epipolar``): cheaper than brute force, and its ratio test compares a keypoint with
-    the few look-alikes on its epipolar line only. Applies to the descriptor matcher (``nn``); learned pair
-    matchers match by brute force."""
+    ``slamkit.features.epipolar``) instead of by brute force: about half the matching time, and its ratio
+    test compares a keypoint with the few look-alikes on its epipolar line only, so it finds more matches
+    over long baselines. Off by default: the extra matches cost 7-Scenes accuracy (benchmarks/README.md,
+    "Tracking work"). Applies to the descriptor matcher (``nn``); learned pair matchers match by brute
+    force."""
     guided_matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.6, max_hamming=50))
     """Descriptor tests of guided matching (ORB-SLAM's for triangulation: ratio 0.6, 50 bits): among the
     few candidates on an epipolar line the ratio test is weaker than among all keypoints, and a wrong match
