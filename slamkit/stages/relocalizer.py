@@ -33,7 +33,8 @@ class FrameTracker(Protocol):
 @dataclass(frozen=True)
 class RelocalizerConfig:
     candidates: int = 3
-    """Most similar keyframes tried (``SlamConfig.relocalization_candidates``; 0 disables)."""
+    """Most similar keyframes tried, then the last keyframe (``SlamConfig.relocalization_candidates``; 0
+    disables)."""
     local_keyframes: int = 30
     """Covisible keyframes in each candidate's local map (``tracker.local_keyframes``)."""
     point_descriptor: str = "newest"
