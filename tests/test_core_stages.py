@@ -84,7 +84,7 @@ def test_relocalizer_finds_a_frame_at_the_right_keyframe_near_ground_truth(mappe
     query = 70  # a frame between keyframes, mapped long before the end of the run
     ff = slam.loader.load(query)[1]
     reloc = Relocalizer(RelocalizerConfig(candidates=3))
-    res = reloc.step(ff, slam_map, signatures, exclude=-1, tracker=slam.tracker)
+    res = reloc.step(ff, slam_map, signatures, last=-1, tracker=slam.tracker)
     assert res.relocalized, res.reason
     # the right keyframe: the one whose view is most like the frame's, taken near it in the sequence
     best = max(signatures, key=lambda i: float(signatures[i] @ ff.signature))
@@ -101,7 +101,7 @@ def test_relocalizer_finds_a_frame_at_the_right_keyframe_near_ground_truth(mappe
     # an image of nothing the map has seen is not relocalized; no candidates: skipped
     noise = ff.__class__(ff.index, ff.frame_id, ff.timestamp, ff.features, ff.keypoints[::-1].copy(), ff.colors,
                          signature=ff.signature)
-    assert not reloc.step(noise, slam_map, signatures, exclude=-1, tracker=slam.tracker).relocalized
+    assert not reloc.step(noise, slam_map, signatures, last=-1, tracker=slam.tracker).relocalized
     off = Relocalizer(RelocalizerConfig(candidates=0)).step(ff, slam_map, signatures, -1, slam.tracker)
     assert off.status == "skipped"
 

@@ -4,6 +4,7 @@ lost-then-recovered camera rejoining the same map, and KITTI 07 at frame skip 2 
 
 from __future__ import annotations
 
+import numpy as np
 import pycolmap
 import pytest
 
@@ -12,6 +13,7 @@ from slamkit.eval import ate
 from slamkit.pipeline import Slam
 from slamkit.sources import open_source
 from slamkit.stages.ba import BundleAdjuster, BundleAdjustmentConfig
+from slamkit.stages.relocalizer import Relocalizer, RelocalizerConfig
 
 from conftest import shared_data
 from test_pipeline import _Interrupted
@@ -89,3 +91,30 @@ def test_driving_preset_turns_the_starving_map_rule_on():
     assert SlamConfig().mapper.starved_points == 0
     c = SlamConfig.preset("driving").mapper
     assert c.starved_points > 0 and c.starved_tri_angle_deg < c.min_tri_angle_deg
+
+
+def test_relocalizer_tries_the_last_keyframe():
+    """A frame that only the last keyframe can find (the one other candidate is the first keyframe, taken
+    25 frames and ~100 degrees of heading earlier; local maps of a keyframe and its 3 most covisible ones)
+    is relocalized there, at the pose tracking gave it."""
+    src, slam = _run("synthetic:fast-yaw?frames=60&yaw_rate=4&turn=150&hold=0&noise=1&seed=0", init_frames=10)
+    slam_map = slam.slam_map
+    first, last = min(slam_map.keyframes), max(slam_map.keyframes)
+    query = 50  # tracked, between the last keyframes (frames 48, 50, 52); lost from frame 53 on
+    assert slam.records[query].rel_pose is not None
+    ff = slam.loader.load(query)[1]
+    seg = slam.segments[0]
+    signatures = {first: seg.signatures[first]}  # the only candidate by signature
+    reloc = Relocalizer(RelocalizerConfig(candidates=1, local_keyframes=3))
+    alone = reloc.step(ff, slam_map, signatures, -1, slam.tracker)
+    assert not alone.relocalized and alone.tried == (first,), alone.reason  # the first keyframe does not find it
+    res = reloc.step(ff, slam_map, signatures, last, slam.tracker)
+    assert res.relocalized and res.keyframe == last and res.tried == (first, last), res.reason
+    # the pose found is the pose the frame has in the map (same map, same frame of reference): rotation
+    # within 1 degree, camera centre within 5 % of the distance to the points it sees
+    found, tracked = res.tracking.cam_from_world, slam.state.pose_of(slam.records[query])
+    cos = (np.trace(found[:3, :3] @ tracked[:3, :3].T) - 1) / 2
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 1.0
+    centre = lambda T: -T[:3, :3].T @ T[:3, 3]  # noqa: E731
+    depth = np.median(np.linalg.norm(res.local_map.xyz - centre(tracked), axis=1))
+    assert np.linalg.norm(centre(found) - centre(tracked)) < 0.05 * depth

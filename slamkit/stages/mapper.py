@@ -14,6 +14,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
+from ..features.epipolar import epipolar_match
 from ..map import SlamMap, rigid_from_matrix
 
 
@@ -40,6 +41,18 @@ class MapperConfig:
     """The smaller triangulation angle of a starving keyframe, degrees (see ``starved_points``); the
     bundle adjustment after it filters points by this angle too (``ba.min_tri_angle_deg`` otherwise), or it
     would remove them again. Lowering both angles for every keyframe instead cost 7-Scenes accuracy."""
+    guided: bool = False
+    """Match a new keyframe with a neighbour only among keypoint pairs near each other's epipolar line of the
+    known poses (within twice ``max_epipolar_error_px``, in front of both cameras;
+    ``slamkit.features.epipolar``) instead of by brute force: about half the matching time, and its ratio
+    test compares a keypoint with the few look-alikes on its epipolar line only, so it finds more matches
+    over long baselines. Off by default: the extra matches cost 7-Scenes accuracy (benchmarks/README.md,
+    "Tracking work"). Applies to the descriptor matcher (``nn``); learned pair matchers match by brute
+    force."""
+    guided_matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.6, max_hamming=50))
+    """Descriptor tests of guided matching (ORB-SLAM's for triangulation: ratio 0.6, 50 bits): among the
+    few candidates on an epipolar line the ratio test is weaker than among all keypoints, and a wrong match
+    along the line still fits the poses, so it is made stricter than ``matching``'s."""
     matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.8, mutual=True))
     compact_dropped: int = 100
     """Images no longer keyframes (culled or rejected) stay in pycolmap's Reconstruction and correspondence
@@ -167,13 +180,19 @@ class Mapper:
         # new correspondences between unmapped keypoints
         free_n = np.flatnonzero(n_pids < 0)
         free_c = np.flatnonzero(~tracked)
-        pairs = self.matcher.match(kf.features.subset(free_n), frame.features.subset(free_c))
+        T_n = np.eye(4)
+        T_n[:3] = slam_map.cam_from_world(n).matrix()
+        cur_from_n = cam_from_world @ np.linalg.inv(T_n)
+        if self.config.guided and isinstance(self.matcher, NearestNeighborMatcher):
+            fa, fb = kf.features, frame.features
+            pairs = epipolar_match(kf.keypoints[free_n], fa.descriptors[free_n], frame.keypoints[free_c],
+                                   fb.descriptors[free_c], fa.binary, cur_from_n, K,
+                                   2 * self.config.max_epipolar_error_px, self.config.guided_matching)
+        else:
+            pairs = self.matcher.match(kf.features.subset(free_n), frame.features.subset(free_c))
         new_pairs = np.stack([free_n[pairs[:, 0]], free_c[pairs[:, 1]]], axis=1) if len(pairs) else \
             np.empty((0, 2), np.int64)
         if len(new_pairs):
-            T_n = np.eye(4)
-            T_n[:3] = slam_map.cam_from_world(n).matrix()
-            cur_from_n = cam_from_world @ np.linalg.inv(T_n)
             err = sampson_error_px(kf.keypoints[new_pairs[:, 0]], frame.keypoints[new_pairs[:, 1]], cur_from_n, K)
             new_pairs = new_pairs[err < self.config.max_epipolar_error_px]
         out = np.concatenate([track_pairs, new_pairs]).astype(np.int64)

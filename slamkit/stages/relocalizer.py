@@ -2,9 +2,11 @@
 Relocalization, with a global image signature in place of a bag of words).
 
 The keyframes are ranked by the similarity of their global image signature to the frame's (a dot product
-of unit vectors, ``slamkit.features.image_signature``); the ``candidates`` most similar ones (the last
-keyframe excluded: its local map just failed) are tried in that order, each with a local map built around
-it, by the tracker itself. The first that tracks the frame wins: tracking resumes from there.
+of unit vectors, ``slamkit.features.image_signature``); the ``candidates`` most similar ones are tried in
+that order, then the last keyframe if it is not among them, each with a local map built around it, by the
+tracker itself without a predicted pose (a search by descriptor). The last keyframe is a candidate too:
+tracking failed with the motion model's prediction, which a fast turn or jump makes wrong, while the frame
+may still see the last keyframe's points. The first that tracks the frame wins: tracking resumes from there.
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ class FrameTracker(Protocol):
 @dataclass(frozen=True)
 class RelocalizerConfig:
     candidates: int = 3
-    """Most similar keyframes tried (``SlamConfig.relocalization_candidates``; 0 disables)."""
+    """Most similar keyframes tried, then the last keyframe (``SlamConfig.relocalization_candidates``; 0
+    disables)."""
     local_keyframes: int = 30
     """Covisible keyframes in each candidate's local map (``tracker.local_keyframes``)."""
     point_descriptor: str = "newest"
@@ -70,25 +73,29 @@ class Relocalizer:
         self.config = config
 
     def step(self, frame: FrameFeatures, slam_map: SlamMap, signatures: dict[int, np.ndarray],
-             exclude: int, tracker: FrameTracker) -> RelocalizationResult:
+             last: int, tracker: FrameTracker) -> RelocalizationResult:
         """Try the keyframes of ``slam_map`` whose ``signatures`` (image id -> (D,) unit vector) are most
-        like the frame's, except ``exclude`` (the last keyframe), tracking with ``tracker``."""
+        like the frame's, then ``last`` (the last keyframe; -1: none) if not among them, tracking with
+        ``tracker``."""
         if self.config.candidates <= 0:
             return RelocalizationResult("skipped", "relocalization disabled")
         if frame.signature is None or not signatures:
             return RelocalizationResult("skipped", "no image signatures")
-        ids = [i for i in signatures if i in slam_map.keyframes and i != exclude]
+        ids = [i for i in signatures if i in slam_map.keyframes]
         if not ids:
-            return RelocalizationResult("skipped", "no other keyframe")
+            return RelocalizationResult("skipped", "no keyframe")
         scores = np.array([float(signatures[i] @ frame.signature) for i in ids])
+        order = [ids[k] for k in np.argsort(-scores, kind="stable")[: self.config.candidates]]
+        if last in slam_map.keyframes and last not in order:
+            order.append(last)
         camera = slam_map.pycolmap_camera
         tried = []
-        for k in np.argsort(-scores, kind="stable")[: self.config.candidates]:
-            tried.append(ids[k])
-            local_map = LocalMap.build(slam_map, ids[k], self.config.local_keyframes, self.config.point_descriptor)
+        for iid in order:
+            tried.append(iid)
+            local_map = LocalMap.build(slam_map, iid, self.config.local_keyframes, self.config.point_descriptor)
             tr = tracker.step(frame, local_map, camera, None)
             if tr.tracked:
-                return RelocalizationResult("relocalized", f"relocalized against keyframe {ids[k]}", ids[k],
+                return RelocalizationResult("relocalized", f"relocalized against keyframe {iid}", iid,
                                             local_map, tr, tuple(tried))
         return RelocalizationResult("failed", f"none of keyframes {', '.join(map(str, tried))} tracks the frame",
                                     tried=tuple(tried))
