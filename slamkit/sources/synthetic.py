@@ -21,7 +21,8 @@ the default sequence, rendered live: ``synthetic:default?noise=1`` is the defaul
 compression). Motions through their own scene (:data:`SCENE_MOTIONS`): ``street-drive`` (driving down a
 street at ``speed`` metres per frame, default 1.0 as KITTI at frame skip 2; :mod:`slamkit.sources.street`)
 and ``corridor-walk`` (a straight walk down a corridor whose walls repeat one tile: perceptual aliasing
-without any revisit; :mod:`slamkit.sources.corridor`). Parameters of every motion:
+without any revisit; :mod:`slamkit.sources.corridor`) and ``block-loop`` (driving ``laps`` times round a
+city block, a 250 m loop: :mod:`slamkit.sources.block`). Parameters of every motion:
 
     frames=N     number of frames (>= 2; each motion has its own default)
     seed=S       integer seed of random motions and of the image noise (default 0)
@@ -65,6 +66,7 @@ from ..errors import CalibrationError, ConfigError, FormatError, SourceError
 from ..io.trajectory import read_tum, write_tum
 from ..types import Trajectory
 from .base import FrameSource, ImageListSource, select
+from .block import block_loop, block_scene
 from .corridor import corridor_scene, corridor_walk
 from .folder import image_size, resolve_camera
 from .motions import (DEFAULT_FRAMES, MOTIONS, _check_positive, default_motion, forward, handheld,  # noqa: F401
@@ -83,6 +85,7 @@ WIDE_CAMERA = Intrinsics(1226, 370, 707.0912, 707.0912, 601.8873, 183.1104)
 SCENE_MOTIONS: dict[str, tuple[Callable[..., np.ndarray], Callable[[], Scene]]] = {
     "street-drive": (street_drive, street_scene),
     "corridor-walk": (corridor_walk, corridor_scene),
+    "block-loop": (block_loop, block_scene),
 }
 """Motions through a scene of their own: name -> (motion ``(n, ...) -> (N, 4, 4)`` camera-to-world poses,
 the scene factory). The motions of :data:`MOTIONS` go through the default room."""
