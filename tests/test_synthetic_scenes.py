@@ -40,7 +40,7 @@ def test_street_spec_opens_the_street_with_its_own_motion():
     assert wide.camera == WIDE_CAMERA and wide[0].gray.shape == (370, 1226)
     room = open_source("synthetic:handheld?frames=3")
     assert room.scene is not src.scene and "street-drive" not in MOTIONS and set(SCENE_MOTIONS) == {
-        "street-drive", "corridor-walk"}
+        "street-drive", "corridor-walk", "block-loop"}
     with pytest.raises(ConfigError, match="at most 355 m"):
         open_source("synthetic:street-drive?frames=300&speed=1.5")
     with pytest.raises(ConfigError, match="takes no parameter 'radius'.*weave"):
