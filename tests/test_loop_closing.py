@@ -147,7 +147,7 @@ def test_drifted_loop_is_corrected_through_the_stage():
     lap2 = range(LAP1, LAP1 + LAP2)
     before = _errors(state, seg, ids, lap2)
     assert before.max() > 0.1  # the injected drift: 25-30 cm over the second lap
-    closer = LoopCloser(LoopClosingConfig(min_consistency=1, min_keyframes=5))
+    closer = LoopCloser(LoopClosingConfig(min_consistency=1, min_keyframes=5, correct=True))
     closer.rebuild(state.segments)
     results = [closer.step(state, seg, ids[k]) for k in range(LAP1 + LAP2 - 3, LAP1 + LAP2)]
     closures = [r.closure for r in results if r.closure is not None]
@@ -172,7 +172,7 @@ def test_drifted_loop_is_corrected_through_the_stage():
 
 def test_no_loop_without_revisit_and_disabled_does_nothing():
     state, seg, ids = _drifted_loop()
-    closer = LoopCloser(LoopClosingConfig(min_consistency=1, min_keyframes=5))
+    closer = LoopCloser(LoopClosingConfig(min_consistency=1, min_keyframes=5, correct=True))
     closer.rebuild(state.segments)
     # keyframes of the first lap's far side never see a place seen long before
     assert all(closer.step(state, seg, ids[k]).closure is None for k in range(20, 30))
@@ -186,7 +186,7 @@ SPEC = "synthetic:loop?frames=400&laps=2&jitter=1&seed=0"
 
 def test_disabled_gives_the_old_behaviour_and_seed_preset_disables():
     assert not SlamConfig.preset("seed").loop_closing.enabled
-    assert SlamConfig().loop_closing.enabled
+    assert SlamConfig().loop_closing.enabled and not SlamConfig().loop_closing.correct  # detect, merge; no correction
     on = Slam(open_source(SPEC), SlamConfig(max_frames=120))
     off = Slam(open_source(SPEC), SlamConfig(max_frames=120).with_overrides(**{"loop_closing.enabled": "false"}))
     on.run(), off.run()
@@ -200,7 +200,7 @@ def test_two_lap_loop_closes_through_the_pipeline():
     """The synthetic room driven round twice: the second lap recognises places of the first (the first
     closure comes at frame 524); poses stay accurate and every closure is in the result and the summary."""
     source = open_source("synthetic:loop?frames=600&laps=2&jitter=1&seed=0")
-    slam = Slam(source, SlamConfig())
+    slam = Slam(source, SlamConfig().with_overrides(**{"loop_closing.correct": True}))
     closed = [r for r in slam if r.loop_closure is not None]
     slam.finish()
     s = slam.summary()
