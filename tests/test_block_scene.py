@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from slamkit.errors import ConfigError
-from slamkit.features import create_extractor
 from slamkit.sources import open_source
 from slamkit.sources.block import BLOCK_HALF, CENTRE_OFFSET, LAP, OUTER_OFFSET, block_loop, block_scene
 from slamkit.sources.scene import project
@@ -92,16 +91,7 @@ def test_block_depth_on_a_facade_equals_the_geometry():
     np.testing.assert_allclose(hit_depth[visible], z[seen][visible], rtol=1e-12)
 
 
-def test_block_frames_have_orb_features_spread_over_the_image():
-    """Enough ORB features on the straights and in the corners, in most cells of a 4 x 4 grid."""
-    src = open_source("synthetic:block-loop?frames=1001&laps=1&seed=0&noise=1")
-    orb = create_extractor("orb", num_features=2000)
-    for i in (0, 150, 300, 640, 900):
-        kp = orb.extract(src[i].gray).keypoints
-        assert len(kp) >= 1500, (i, len(kp))
-        cells = np.bincount((kp[:, 1] * 4 // src.camera.height).astype(int) * 4
-                            + (kp[:, 0] * 4 // src.camera.width).astype(int), minlength=16)
-        assert (cells >= 15).sum() >= 12, (i, cells.reshape(4, 4))
+# ORB features spread over the image: tests/test_synthetic_scenes.py (parametrized over the scenes)
 
 
 def test_block_facades_all_differ():

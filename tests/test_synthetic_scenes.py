@@ -97,13 +97,16 @@ def test_street_depth_on_a_facade_equals_the_geometry():
     np.testing.assert_allclose(hit_depth[visible], z[seen][visible], rtol=1e-12)
 
 
-@pytest.mark.parametrize("spec", ["synthetic:street-drive?frames=150&speed=1.0&noise=1",
-                                  "synthetic:corridor-walk?frames=120&speed=0.1&noise=1"])
-def test_frames_have_orb_features_spread_over_the_image(spec):
+@pytest.mark.parametrize("spec, frames", [("synthetic:street-drive?frames=150&speed=1.0&noise=1", (0, 75, 149)),
+                                          ("synthetic:corridor-walk?frames=120&speed=0.1&noise=1", (0, 60, 119)),
+                                          # the city block on its straights and in its corners
+                                          ("synthetic:block-loop?frames=1001&laps=1&seed=0&noise=1",
+                                           (0, 150, 300, 640, 900))])
+def test_frames_have_orb_features_spread_over_the_image(spec, frames):
     """Enough ORB features in every frame, and in most cells of a 4 x 4 grid (the sky may have none)."""
     src = open_source(spec)
     orb = create_extractor("orb", num_features=2000)
-    for i in (0, len(src) // 2, len(src) - 1):
+    for i in frames:
         kp = orb.extract(src[i].gray).keypoints
         assert len(kp) >= 1500, (i, len(kp))
         cells = np.bincount((kp[:, 1] * 4 // src.camera.height).astype(int) * 4

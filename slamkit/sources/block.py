@@ -25,6 +25,7 @@ import math
 import numpy as np
 
 from ..errors import ConfigError
+from .motions import _check_frames
 from .render import look_at
 from .scene import Scene
 from .street import SKY, _shade, _size
@@ -206,8 +207,7 @@ def block_loop(n: int | None = None, laps: int = 2, speed: float | None = None, 
         raise ConfigError(f"speed must be in [0.01, 5] metres per frame (got {speed})")
     if n is None:
         n = int(round(laps * LAP / (0.25 if speed is None else speed))) + 1
-    if int(n) != n or n < 2:
-        raise ConfigError(f"frames must be an integer >= 2 (got {n})")
+    n = _check_frames(n)
     if not (math.isfinite(weave) and 0 <= weave <= 1.5):
         raise ConfigError(f"weave must be in [0, 1.5] metres (got {weave})")
     rng = np.random.default_rng(int(seed))

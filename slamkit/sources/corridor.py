@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError
+from .motions import _check_frames
 from .render import look_at
 from .scene import Scene
 from .surfaces import Quad, Texture
@@ -109,9 +110,7 @@ def corridor_walk(n: int = 300, speed: float = 0.05, sway: float = 0.15, seed: i
     ``speed`` metres per frame (0.05: 1.5 m/s at 30 fps) from y = 2 to 5 m (drawn from ``seed``), swaying
     ``sway`` metres to the sides (a sine of 7 m period) with the heading following the sway and a slow +-4
     degree gaze sweep. The walk must stop 10 m before the far end: ``(n - 1) * speed`` is at most 43 m."""
-    if int(n) != n or n < 2:
-        raise ConfigError(f"frames must be an integer >= 2 (got {n})")
-    n = int(n)
+    n = _check_frames(n)
     if not (math.isfinite(speed) and 0 < speed <= 1):
         raise ConfigError(f"speed must be in (0, 1] metres per frame (got {speed})")
     if not (math.isfinite(sway) and 0 <= sway <= 0.5):

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError
+from .motions import _check_frames
 from .render import look_at
 from .scene import Scene, box_quads
 from .surfaces import Quad, Texture
@@ -257,9 +258,7 @@ def street_drive(n: int = 150, speed: float = 1.0, weave: float = 0.3, seed: int
     bob, so that the path is not a line and a Sim(3) alignment to it is defined. ``seed`` picks the start
     (y in [0, 20] m) and the phases. The drive must end 45 m before the far end of the street:
     ``(n - 1) * speed`` is at most 355 m."""
-    if int(n) != n or n < 2:
-        raise ConfigError(f"frames must be an integer >= 2 (got {n})")
-    n = int(n)
+    n = _check_frames(n)
     if not (math.isfinite(speed) and 0 < speed <= 5):
         raise ConfigError(f"speed must be in (0, 5] metres per frame (got {speed})")
     if not (math.isfinite(weave) and 0 <= weave <= 1.5):
