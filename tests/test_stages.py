@@ -313,6 +313,50 @@ def test_tracker_takes_a_good_prediction_without_ransac_and_a_bad_one_with_it(si
     assert res.tracked and res.method == "motion+ransac"
 
 
+def test_tracker_rematches_by_descriptor_when_the_motion_model_pose_is_weak():
+    """A turn starts between two frames: the constant-velocity prediction is 3 degrees off (26 px), beyond the
+    search radius. Around it only 100 look-alike keypoints match, and they fit the wrong pose exactly (as
+    repeated facades can). The motion model's pose keeps 100 inliers of the 600 points tracked in the last
+    frame, so the frame is matched against the whole local map by descriptor, and the true pose wins."""
+    from slamkit.features import Features
+    rng = np.random.default_rng(7)
+    camera = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=[500.0, 500.0, 320.0, 240.0])
+    K = camera.calibration_matrix()
+    gt = np.eye(4)
+    gt[:3, :3] = cv2.Rodrigues(np.array([0.0, np.radians(4.0), 0.0]))[0]
+    gt[:3, 3] = [0.05, 0.0, -0.25]
+    wrong = np.eye(4)
+    wrong[:3, :3] = cv2.Rodrigues(np.array([0.0, np.radians(-3.0), 0.0]))[0]
+    wrong = wrong @ gt
+
+    def pixels(cam_from_world, xyz):
+        x = xyz @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        return x[:, :2] / x[:, 2:] * K[[0, 1], [0, 1]] + K[:2, 2]
+
+    xyz = rng.uniform([-3.0, -2.0, 6.0], [3.0, 2.0, 9.0], (600, 3))
+    inside = lambda uv: ((uv >= 0) & (uv < [640, 480])).all(axis=1)  # noqa: E731
+    xyz = xyz[inside(pixels(gt, xyz)) & inside(pixels(wrong, xyz))][:500]
+    assert len(xyz) == 500
+    desc = rng.integers(0, 256, (len(xyz), 32), dtype=np.uint8)
+    ids = np.arange(1, len(xyz) + 1, dtype=np.int64)
+    local_map = LocalMap(ids, xyz, desc, True, 1, np.empty(0, np.int64), np.empty((0, 2)), [1])
+    kp = np.concatenate([pixels(gt, xyz), pixels(wrong, xyz[:100])])  # 100 look-alikes where the wrong pose says
+    feats = Features(kp, np.concatenate([desc, desc[:100]]), np.ones(len(kp), np.float32), True)
+    frame = FrameFeatures(1, 1, 0.1, feats, kp, np.zeros((len(kp), 3), np.uint8))
+    for ratio, want, inliers in ((0.0, wrong, 100), (0.5, gt, 500)):
+        res = Tracker(TrackerConfig(recheck_inlier_ratio=ratio)).step(frame, local_map, camera, wrong, ids)
+        assert res.tracked, res.reason
+        assert rotation_angle_deg(res.cam_from_world[:3, :3] @ want[:3, :3].T) < 0.01, (ratio, res.reason)
+        assert np.linalg.norm(res.cam_from_world[:3, 3] - want[:3, 3]) < 1e-3, (ratio, res.reason)
+        assert res.num_inliers == inliers, (ratio, res.reason)
+    assert res.method == "local map" and "re-matched by descriptor" in res.reason
+    # a pose keeping most of the last frame's points is not second-guessed
+    res = Tracker().step(frame, local_map, camera, gt, ids)
+    assert res.method == "motion" and "re-matched" not in res.reason and res.num_inliers == 500
+    with pytest.raises(ConfigError, match="recheck_inlier_ratio"):
+        TrackerConfig(recheck_inlier_ratio=2).validate()
+
+
 def test_tracker_reports_lost_on_unrelated_image(exact_map):
     rng = np.random.default_rng(1)
     from slamkit.features import Features
