@@ -186,7 +186,7 @@ SPEC = "synthetic:loop?frames=400&laps=2&jitter=1&seed=0"
 
 def test_disabled_gives_the_old_behaviour_and_seed_preset_disables():
     assert not SlamConfig.preset("seed").loop_closing.enabled
-    assert SlamConfig().loop_closing.enabled and not SlamConfig().loop_closing.correct  # detect, merge; no correction
+    assert SlamConfig().loop_closing.enabled and SlamConfig().loop_closing.correct  # detect, correct, merge
     on = Slam(open_source(SPEC), SlamConfig(max_frames=120))
     off = Slam(open_source(SPEC), SlamConfig(max_frames=120).with_overrides(**{"loop_closing.enabled": "false"}))
     on.run(), off.run()
@@ -200,7 +200,7 @@ def test_two_lap_loop_closes_through_the_pipeline():
     """The synthetic room driven round twice: the second lap recognises places of the first (the first
     closure comes at frame 524); poses stay accurate and every closure is in the result and the summary."""
     source = open_source("synthetic:loop?frames=600&laps=2&jitter=1&seed=0")
-    slam = Slam(source, SlamConfig().with_overrides(**{"loop_closing.correct": True}))
+    slam = Slam(source)  # the default configuration closes loops
     closed = [r for r in slam if r.loop_closure is not None]
     slam.finish()
     s = slam.summary()

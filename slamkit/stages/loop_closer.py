@@ -97,13 +97,10 @@ class LoopClosingConfig:
     """Place-database entries one query visits at most (bounded query time as the map grows)."""
     global_ba: bool = True
     """Global bundle adjustment after a loop correction."""
-    correct: bool = False
+    correct: bool = True
     """Correct a verified loop inside the segment (pose graph, point fusion, global BA); False: detect and
-    report it only (``LoopClosingResult.reason``). Off by default: on the synthetic city block driven round twice
-    (``benchmarks/bench_loop.py --cases block``) the first closure cuts the ATE 4x, but 200 frames later the
-    tracking against the corrected first lap's map jumps in scale (x 0.37 within 20 frames) and the run ends
-    5x worse than without; not understood yet (benchmarks/README.md, "City block"). Places of other segments
-    are merged either way (map merging, on with ``enabled``)."""
+    report it only (``LoopClosingResult.reason``), for the source paper's trajectories and for ablations.
+    Places of other segments are merged either way (map merging, on with ``enabled``)."""
 
     def validate(self) -> None:
         for name in ("query_candidates", "max_verifications", "loop_group", "min_inliers", "max_postings"):
