@@ -314,7 +314,7 @@ def test_tracker_takes_a_good_prediction_without_ransac_and_a_bad_one_with_it(si
 
 
 def test_tracker_rematches_by_descriptor_when_the_motion_model_pose_is_weak():
-    """A turn starts between two frames: the constant-velocity prediction is 3 degrees off (26 px), beyond the
+    """A turn starts (or ends) between two frames: the constant-velocity prediction is 3 degrees off (26 px), beyond the
     search radius. Around it only 100 look-alike keypoints match, and they fit the wrong pose exactly (as
     repeated facades can). The motion model's pose keeps 100 inliers of the 600 points tracked in the last
     frame, so the frame is matched against the whole local map by descriptor, and the true pose wins."""
