@@ -25,7 +25,7 @@ import math
 import numpy as np
 
 from ..errors import ConfigError
-from .motions import _check_frames
+from .motions import _check_frames, _check_range
 from .render import look_at
 from .scene import Scene
 from .street import SKY, _shade, _size
@@ -203,13 +203,12 @@ def block_loop(n: int | None = None, laps: int = 2, speed: float | None = None, 
         raise ConfigError(f"laps must be an integer >= 1 (got {laps})")
     if n is not None and speed is not None:
         raise ConfigError("block-loop: give frames or speed, not both (the frames cover exactly the laps)")
-    if speed is not None and not (math.isfinite(speed) and 0.01 <= speed <= 5):
-        raise ConfigError(f"speed must be in [0.01, 5] metres per frame (got {speed})")
+    if speed is not None:
+        _check_range("speed", speed, 0.01, 5, "metres per frame")
     if n is None:
         n = int(round(laps * LAP / (0.25 if speed is None else speed))) + 1
     n = _check_frames(n)
-    if not (math.isfinite(weave) and 0 <= weave <= 1.5):
-        raise ConfigError(f"weave must be in [0, 1.5] metres (got {weave})")
+    _check_range("weave", weave, 0, 1.5, "metres")
     rng = np.random.default_rng(int(seed))
     start, phase = rng.uniform(10.0, 40.0), rng.uniform(0, 2 * np.pi)
     s = start + int(laps) * LAP * np.arange(int(n)) / (int(n) - 1)

@@ -14,13 +14,12 @@ are about ``texels_per_metre`` (200: 5 mm texels, 2 px at the 1.2 m to the neare
 from __future__ import annotations
 
 import functools
-import math
 
 import cv2
 import numpy as np
 
 from ..errors import ConfigError
-from .motions import _check_frames
+from .motions import _check_frames, _check_range
 from .render import look_at
 from .scene import Scene
 from .surfaces import Quad, Texture
@@ -111,10 +110,8 @@ def corridor_walk(n: int = 300, speed: float = 0.05, sway: float = 0.15, seed: i
     ``sway`` metres to the sides (a sine of 7 m period) with the heading following the sway and a slow +-4
     degree gaze sweep. The walk must stop 10 m before the far end: ``(n - 1) * speed`` is at most 43 m."""
     n = _check_frames(n)
-    if not (math.isfinite(speed) and 0 < speed <= 1):
-        raise ConfigError(f"speed must be in (0, 1] metres per frame (got {speed})")
-    if not (math.isfinite(sway) and 0 <= sway <= 0.5):
-        raise ConfigError(f"sway must be in [0, 0.5] metres (got {sway})")
+    _check_range("speed", speed, 0, 1, "metres per frame", open_low=True)
+    _check_range("sway", sway, 0, 0.5, "metres")
     if (n - 1) * speed > 43.0:
         raise ConfigError(f"corridor-walk: frames x speed = {(n - 1) * speed:g} m is longer than the corridor "
                           f"allows (at most 43 m)")

@@ -33,6 +33,15 @@ def _check_positive(name: str, value: float) -> float:
     return float(value)
 
 
+def _check_range(name: str, value: float, low: float, high: float, unit: str = "", open_low: bool = False
+                 ) -> float:
+    """``value`` is finite and in [low, high] (``open_low``: in (low, high]), else a ConfigError naming ``name``."""
+    if not (math.isfinite(value) and (low < value if open_low else low <= value) and value <= high):
+        raise ConfigError(f"{name} must be in {'(' if open_low else '['}{low:g}, {high:g}]{' ' + unit if unit else ''} "
+                          f"(got {value})")
+    return float(value)
+
+
 def _travel(n: int, speed: float, length: float) -> np.ndarray:
     """(n,) distances along a path of ``length`` metres at ``speed`` metres per frame: straight through when
     the path is long enough, else back and forth with smooth (cosine) turns."""
@@ -146,8 +155,7 @@ def loop(n: int = 240, jitter: float = 0.0, seed: int = 0, laps: int = 1) -> np.
     per unit, drawn from ``seed``. ``laps`` (>= 1): times the ellipse is driven round in the n frames (the
     later laps revisit the places of the first: a sequence for loop closing)."""
     n = _check_frames(n)
-    if not (math.isfinite(jitter) and 0 <= jitter <= 2):
-        raise ConfigError(f"jitter must be in [0, 2] (got {jitter})")
+    _check_range("jitter", jitter, 0, 2)
     if int(laps) != laps or laps < 1:
         raise ConfigError(f"laps must be an integer >= 1 (got {laps})")
     phi = 2 * np.pi * int(laps) * np.arange(n) / (n - 1)
@@ -210,8 +218,7 @@ def fast_forward(n: int = 80, speed: float = 0.25, weave: float = 0.4) -> np.nda
     Sim(3) alignment to it is defined. 0.25 m per frame is a median image motion of ~25 px, as KITTI at
     frame skip 2."""
     n, speed = _check_frames(n), _check_positive("speed", speed)
-    if not (math.isfinite(weave) and 0 < weave <= 0.5):
-        raise ConfigError(f"weave must be in (0, 0.5] metres (got {weave})")
+    _check_range("weave", weave, 0, 0.5, "metres", open_low=True)
     poses = forward(n, speed)
     poses[:, 0, 3] = 0.2 + weave * np.sin(2 * np.pi * np.arange(n) / (n - 1))
     return poses

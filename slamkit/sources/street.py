@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError
-from .motions import _check_frames
+from .motions import _check_frames, _check_range
 from .render import look_at
 from .scene import Scene, box_quads
 from .surfaces import Quad, Texture
@@ -259,10 +259,8 @@ def street_drive(n: int = 150, speed: float = 1.0, weave: float = 0.3, seed: int
     (y in [0, 20] m) and the phases. The drive must end 45 m before the far end of the street:
     ``(n - 1) * speed`` is at most 355 m."""
     n = _check_frames(n)
-    if not (math.isfinite(speed) and 0 < speed <= 5):
-        raise ConfigError(f"speed must be in (0, 5] metres per frame (got {speed})")
-    if not (math.isfinite(weave) and 0 <= weave <= 1.5):
-        raise ConfigError(f"weave must be in [0, 1.5] metres (got {weave})")
+    _check_range("speed", speed, 0, 5, "metres per frame", open_low=True)
+    _check_range("weave", weave, 0, 1.5, "metres")
     if (n - 1) * speed > 355.0:
         raise ConfigError(f"street-drive: frames x speed = {(n - 1) * speed:g} m is longer than the street "
                           f"allows (at most 355 m)")
