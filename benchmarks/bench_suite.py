@@ -47,6 +47,7 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import ast  # noqa: E402
 import csv  # noqa: E402
 import fnmatch  # noqa: E402
 import math  # noqa: E402
@@ -54,7 +55,7 @@ import multiprocessing as mp  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import traceback  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass, field, replace  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -330,6 +331,17 @@ def write_csv(path: Path, runs: list[dict], cases: list[dict]) -> None:
         w.writerows(runs + cases)
 
 
+def _override(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of ``--set``: the value as a Python literal when it is one (numbers, booleans), else a string."""
+    key, sep, value = text.partition("=")
+    if not sep or not key:
+        raise SystemExit(f"--set {text!r}: expected KEY=VALUE")
+    try:
+        return key, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        return key, value
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -341,6 +353,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--csv", type=Path, default=RESULTS / "bench_suite.csv", help="CSV to write")
     ap.add_argument("--no-save", action="store_true", help="do not write each run's output folder")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for every case (SlamConfig.with_overrides key, e.g. mapper.method=local); "
+                         "repeatable")
     args = ap.parse_args(argv)
     cases = select_cases(CASES, args.cases, args.quick)
     if args.list or not cases:
@@ -348,7 +363,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{c.name:22s} {'quick' if c.quick else '     '} {c.what}")
         return 0 if cases else 2
     seeds = list(range(args.seeds if args.seeds is not None else (1 if args.quick else 3)))
-    jobs = [(c, s) for c in cases for s in seeds]
+    overrides = dict(_override(kv) for kv in args.set)
+    jobs = [(replace(c, config={**c.config, **overrides}), s) for c in cases for s in seeds]
     version = code_version()
     print(f"[suite] {len(cases)} cases x {len(seeds)} seed(s) = {len(jobs)} runs in {args.jobs} workers, "
           f"slamkit {version}, load average {os.getloadavg()[0]:.1f}", file=sys.stderr, flush=True)

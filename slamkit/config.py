@@ -14,6 +14,7 @@ from .features.learned import PIPELINES as LEARNED_PIPELINES, unavailable_reason
 from .stages.ba import BundleAdjustmentConfig
 from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
+from .stages.local_mapper import LocalMappingConfig
 from .stages.loop_closer import LoopClosingConfig
 from .stages.mapper import MapperConfig
 from .stages.tracker import TrackerConfig
@@ -66,6 +67,8 @@ class SlamConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
+    local_mapping: LocalMappingConfig = field(default_factory=LocalMappingConfig)
+    """The local-mapping stage used when ``mapper.method`` is "local"."""
     ba: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
     loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
     """Loop detection and correction (``--set loop_closing.enabled=false`` turns it off; the ``seed`` preset
@@ -95,7 +98,8 @@ class SlamConfig:
             parse_camera_values(self.camera, "camera")
         if self.max_lost_frames < 1:
             raise ConfigError(f"max_lost_frames must be >= 1 (got {self.max_lost_frames})")
-        for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.ba, self.loop_closing):
+        for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.local_mapping, self.ba,
+                      self.loop_closing):
             stage.validate()
         if self.mapper.min_keyframe_points > self.initializer.min_points * 10:
             raise ConfigError("mapper.min_keyframe_points is larger than any initial map could provide "

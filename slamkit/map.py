@@ -103,10 +103,16 @@ class SlamMap:
         self._point3D_ids: dict[int, np.ndarray] = {}
         self._covisible: dict[int, list[tuple[int, int]]] = {}
 
-    def changed(self) -> None:
+    def changed(self, image_ids=None) -> None:
         """Forget the cached per-keyframe point ids and covisibility: call after anything that adds,
-        merges or removes observations (registration, triangulation, track maintenance, filtering)."""
-        self._point3D_ids.clear()
+        merges or removes observations (registration, triangulation, track maintenance, filtering).
+        image_ids: only these images' observations changed (their point ids are forgotten, and every
+        covisibility); None: any may have."""
+        if image_ids is None:
+            self._point3D_ids.clear()
+        else:
+            for i in image_ids:
+                self._point3D_ids.pop(int(i), None)
         self._covisible.clear()
 
     # ----------------------------------------------------------------- keyframes
@@ -192,8 +198,42 @@ class SlamMap:
                 continue
             self.observations.add_observation(p, pycolmap.TrackElement(image_id, j))
             added += 1
-        self.changed()
+        self.changed([image_id])
         return added
+
+    def add_point(self, xyz: np.ndarray, observations, color: np.ndarray) -> int:
+        """Create a 3D point at ``xyz`` (3,) observed by ``observations`` ((image id, keypoint index), ...) of
+        registered keyframes, coloured ``color`` (3,) uint8; returns its id. Track maintenance after the next
+        bundle adjustment (completion and merging through the correspondence graph) includes it."""
+        track = pycolmap.Track()
+        for image_id, j in observations:
+            track.add_element(int(image_id), int(j))
+        pid = int(self.observations.add_point3D(np.asarray(xyz, np.float64), track, np.asarray(color, np.uint8)))
+        self.triangulator.add_modified_point3D(pid)
+        self.changed([i for i, _ in observations])
+        return pid
+
+    def delete_point(self, point3D_id: int) -> None:
+        """Remove a 3D point and its observations."""
+        images = [el.image_id for el in self.reconstruction.point3D(int(point3D_id)).track.elements]
+        self.observations.delete_point3D(int(point3D_id))
+        self.changed(images)
+
+    def merge_points(self, point3D_id1: int, point3D_id2: int) -> int:
+        """Fuse two 3D points that are the same scene point into one (``ObservationManager.merge_points3D``:
+        tracks joined, position averaged by track length); returns its id, or -1 (nothing changed) when either
+        no longer exists or a keyframe observes both (one track may hold one observation per image)."""
+        rec = self.reconstruction
+        if point3D_id1 == point3D_id2 or not (rec.exists_point3D(point3D_id1) and rec.exists_point3D(point3D_id2)):
+            return -1
+        images1 = {el.image_id for el in rec.point3D(point3D_id1).track.elements}
+        images2 = [el.image_id for el in rec.point3D(point3D_id2).track.elements]
+        if any(i in images1 for i in images2):
+            return -1
+        pid = int(self.observations.merge_points3D(int(point3D_id1), int(point3D_id2)))
+        self.triangulator.add_modified_point3D(pid)
+        self.changed([*images1, *images2])
+        return pid
 
     def triangulate(self, image_id: int) -> int:
         """Continue and create tracks through the new keyframe (COLMAP ``triangulate_image``)."""
@@ -235,6 +275,17 @@ class SlamMap:
         """(M, 3) positions of the given points."""
         pts = self.reconstruction.points3D
         return np.array([pts[int(p)].xyz for p in point3D_ids], dtype=np.float64).reshape(-1, 3)
+
+    def covisible_with(self, point3D_ids: np.ndarray, limit: int | None = None) -> list[tuple[int, int]]:
+        """Keyframes observing the given points: [(image id, points among them it observes)], most first, ties
+        by image id (the covisibility of a frame that is not a keyframe yet, from its tracked points)."""
+        point3D, exists = self.reconstruction.point3D, self.reconstruction.exists_point3D
+        ids = [el.image_id for p in np.unique(np.asarray(point3D_ids, np.int64)).tolist() if p >= 0 and exists(p)
+               for el in point3D(p).track.elements]
+        counts = np.bincount(np.asarray(ids, np.int64)) if ids else np.zeros(1, np.int64)
+        ranked = [(int(i), int(counts[i])) for i in np.lexsort((np.arange(len(counts)), -counts))
+                  if counts[i] > 0 and int(i) in self.keyframes]
+        return ranked[:limit] if limit is not None else ranked
 
     def covisible(self, image_id: int, limit: int | None = None) -> list[tuple[int, int]]:
         """Keyframes sharing 3D points with ``image_id``: [(image id, shared points)], most shared first
@@ -354,6 +405,26 @@ class SlamMap:
         self.triangulator = pycolmap.IncrementalTriangulator(self.graph, self.reconstruction, self.observations)
         self._observed = set(int(i) for i in self.reconstruction.images)
         self.changed()
+
+
+def shared_observations(slam_map: SlamMap, image_id: int, point2D_idxs: np.ndarray, point3D_ids: np.ndarray
+                        ) -> np.ndarray:
+    """Correspondences of a frame with keyframe ``image_id`` through the map points both observe: (M, 2) int64
+    (keypoint in the keyframe, keypoint in the frame) for the frame's tracked observations ``point2D_idxs``,
+    ``point3D_ids`` (K,) whose point the keyframe observes too, one per point."""
+    n_pids = slam_map.point3D_ids(image_id)
+    has = np.flatnonzero(n_pids >= 0)
+    if len(has) == 0 or len(point3D_ids) == 0:
+        return np.empty((0, 2), np.int64)
+    o = np.argsort(n_pids[has])
+    sorted_pids, sorted_kp = n_pids[has][o], has[o]
+    point3D_ids = np.asarray(point3D_ids, np.int64)
+    _, first = np.unique(point3D_ids, return_index=True)
+    first = np.sort(first)
+    pids, kps = point3D_ids[first], np.asarray(point2D_idxs, np.int64)[first]
+    pos = np.minimum(np.searchsorted(sorted_pids, pids), len(sorted_pids) - 1)
+    seen = sorted_pids[pos] == pids
+    return np.stack([sorted_kp[pos[seen]], kps[seen]], axis=1).astype(np.int64)
 
 
 def max_point3D_id(rec: pycolmap.Reconstruction) -> int:

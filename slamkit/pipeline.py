@@ -35,6 +35,7 @@ from .stages.ba import BundleAdjuster
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
 from .stages.initializer import Initializer, track_window
 from .stages.keyframes import KeyframeDecision, KeyframeSelector
+from .stages.local_mapper import LocalMapper
 from .stages.loop_closer import LoopCloser, LoopClosingResult, MergeCandidate
 from .stages.mapper import Mapper
 from .stages.motion import MotionModel
@@ -116,6 +117,7 @@ class Slam:
                                                          c.tracker.point_descriptor))
         self.selector = KeyframeSelector(c.keyframes)
         self.mapper = Mapper(c.mapper, matcher)
+        self.local_mapper = LocalMapper(c.local_mapping, c.mapper.min_keyframe_points)
         self.bundle_adjuster = BundleAdjuster(c.ba)
         k = c.keyframes
         self.culler = KeyframeCuller(KeyframeCullingConfig(k.cull_redundant, k.cull_min_observers, k.cull_keep_recent,
@@ -294,6 +296,10 @@ class Slam:
             return self._lost(record, tr, timings)
         st.consecutive_lost = 0
         st.last_ids = tr.point3D_ids
+        if len(seg.recent_points.ids):  # local mapping's recent-point test counts every tracked frame
+            cam = seg.slam_map.pycolmap_camera
+            visible, _ = st.local_map.project(tr.cam_from_world, cam.calibration_matrix(), (cam.width, cam.height))
+            seg.recent_points.observe(st.local_map.ids[visible], tr.point3D_ids)
         reference = st.last_keyframe
         st.set_pose(record, reference, tr.cam_from_world, TRACKED, absolute=True)
         if seg.slam_map.num_keyframes < RETRACK_BELOW_KEYFRAMES:  # young map: track again in finish()
@@ -354,14 +360,21 @@ class Slam:
         ff = FrameFeatures(ff.index, ff.frame_id, ff.timestamp, ff.features, ff.keypoints, ff.colors,
                            thumbnail(self.last_frame, ff.index, self.config.thumbnail_width), ff.signature)
         t = time.perf_counter()
-        mres = self.mapper.step(slam_map, ff, tr.cam_from_world, tr.point2D_idxs, tr.point3D_ids, st.last_keyframe)
+        local = self.config.mapper.method == "local"
+        if local:
+            mres = self.local_mapper.step(slam_map, ff, tr.cam_from_world, tr.point2D_idxs, tr.point3D_ids,
+                                          seg.recent_points)
+        else:
+            mres = self.mapper.step(slam_map, ff, tr.cam_from_world, tr.point2D_idxs, tr.point3D_ids,
+                                    st.last_keyframe)
         timings["map"] = time.perf_counter() - t
         if not mres.registered:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
                                                             tr.ref_matches), (LoopClosingResult(), None)
         t = time.perf_counter()
-        bres = self.bundle_adjuster.step(slam_map, mres.image_id,
-                                         self.config.mapper.starved_tri_angle_deg if mres.starved else None)
+        # the filter angle after BA: local mapping's parallax for the points it makes, a starving keyframe's
+        bres = self.bundle_adjuster.step(slam_map, mres.image_id, self.config.local_mapping.min_parallax_deg if local
+                                         else self.config.mapper.starved_tri_angle_deg if mres.starved else None)
         timings["ba"] = time.perf_counter() - t
         if bres.normalization is not None:
             st.apply_normalization(seg, float(bres.normalization.scale))

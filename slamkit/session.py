@@ -61,7 +61,7 @@ from .loop_verification import ConsistentGroup
 from .map import CAMERA_ID, Keyframe, SlamMap, graph_pairs, max_point3D_id
 from .map import max_point3D_id as _max_point3D_id  # noqa: F401  (its name here before it moved to map)
 from .stages.initializer import InitializerWindow
-from .state import FrameRecord, Segment, SlamState
+from .state import FrameRecord, RecentPoints, Segment, SlamState
 
 if TYPE_CHECKING:  # pragma: no cover
     from .pipeline import Slam
@@ -160,14 +160,17 @@ def _write_segment(seg, folder: Path) -> dict:
     _put_list(arrays, "graph_matches", matches)
     sig_ids = list(seg.signatures)
     _put_list(arrays, "signatures", [seg.signatures[i] for i in sig_ids])
+    arrays["recent_points"] = seg.recent_points.as_array()
     meta = {
         "id": seg.id,
         "frames": [int(i) for i in seg.frames],
         "relocalizations": int(seg.relocalizations),
         "extra": {f.name: getattr(seg, f.name) for f in dataclasses.fields(seg)
-                  if f.name not in ("id", "slam_map", "frames", "initial_frames", "signatures", "relocalizations")
+                  if f.name not in ("id", "slam_map", "frames", "initial_frames", "signatures", "relocalizations",
+                                    "recent_points")
                   and isinstance(getattr(seg, f.name), (bool, int, float, str, type(None)))},
         "signature_image_ids": [int(i) for i in sig_ids],
+        "recent_point_steps": int(seg.recent_points.steps),
         "keyframes": [{"image_id": kf.image_id, "frame_index": kf.frame_index, "timestamp": kf.timestamp}
                       for kf in kfs],
         "keyframe_features": _features_to([(kf.features, kf.keypoints, kf.colors, kf.thumbnail, None) for kf in kfs],
@@ -346,9 +349,11 @@ def _read_segment(camera: Intrinsics, smeta: dict, seg_folder: Path) -> Segment:
         slam_map = _restore_map(camera, smeta, seg_arrays, seg_folder)
         sigs = _get_list(seg_arrays, "signatures")
         initial = _frame_features_from(smeta["initial_frames"], "initial", seg_arrays)
+        recent = RecentPoints.from_array(seg_arrays["recent_points"] if "recent_points" in seg_arrays
+                                         else np.empty((0, 4)), smeta.get("recent_point_steps", 0))
     seg = Segment(int(smeta["id"]), slam_map, frames=list(smeta["frames"]), initial_frames=initial,
                   signatures=dict(zip(smeta["signature_image_ids"], sigs)),
-                  relocalizations=int(smeta["relocalizations"]))
+                  relocalizations=int(smeta["relocalizations"]), recent_points=recent)
     for k, v in smeta.get("extra", {}).items():
         setattr(seg, k, v)
     return seg

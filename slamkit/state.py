@@ -62,6 +62,49 @@ class FrameRecord:
 
 
 @dataclass(eq=False)
+class RecentPoints:
+    """Map points created by local mapping (``slamkit.stages.local_mapper``) that have not passed ORB-SLAM's
+    recent-point test yet: ids (K,) int64, the mapping step that created each (birth), and in how many tracked
+    frames each was predicted visible (projected inside the image from the local map) and found (a pose
+    inlier). ``steps``: keyframes local mapping has inserted in the segment."""
+
+    ids: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    birth: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    visible: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    found: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    steps: int = 0
+
+    def add(self, ids) -> None:
+        """New points, born at the current step, seen and found by the keyframe that created them."""
+        ids = np.asarray(ids, np.int64).reshape(-1)
+        ones = np.ones(len(ids), np.int64)
+        self.ids = np.concatenate([self.ids, ids])
+        self.birth = np.concatenate([self.birth, ones * self.steps])
+        self.visible = np.concatenate([self.visible, ones])
+        self.found = np.concatenate([self.found, ones])
+
+    def keep(self, mask: np.ndarray) -> None:
+        """Keep the points where ``mask`` (K,) is True."""
+        self.ids, self.birth, self.visible, self.found = (a[mask] for a in (self.ids, self.birth, self.visible,
+                                                                             self.found))
+
+    def observe(self, visible_ids: np.ndarray, found_ids: np.ndarray) -> None:
+        """Count a tracked frame: the points it predicted visible and the points it found (ids, any order)."""
+        if len(self.ids):
+            self.visible += np.isin(self.ids, visible_ids)
+            self.found += np.isin(self.ids, found_ids)
+
+    def as_array(self) -> np.ndarray:
+        """(K, 4) int64 [id, birth, visible, found] (sessions)."""
+        return np.stack([self.ids, self.birth, self.visible, self.found], axis=1).reshape(-1, 4)
+
+    @classmethod
+    def from_array(cls, a: np.ndarray, steps: int) -> "RecentPoints":
+        a = np.asarray(a, np.int64).reshape(-1, 4)
+        return cls(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy(), a[:, 3].copy(), int(steps))
+
+
+@dataclass(eq=False)
 class Segment:
     """One map segment: its map, the frames posed in it, and the features of the frames posed at
     initialization (re-tracked against the final map by ``Slam.finish``)."""
@@ -75,6 +118,8 @@ class Segment:
     relocalizations: int = 0
     keyframes_culled: int = 0
     """Keyframes removed from the map as redundant (``keyframes.cull_redundant``)."""
+    recent_points: RecentPoints = field(default_factory=RecentPoints)
+    """Points local mapping created recently and still tests (``mapper.method = "local"``)."""
     merged_into: int = -1
     """Id of the segment this one was merged into (``slamkit.merging.merge_segments``; it is then empty and
     kept only so segment ids stay indices), -1 while it is a map of its own."""

@@ -18,8 +18,16 @@ from ..features.epipolar import epipolar_match
 from ..map import SlamMap, rigid_from_matrix
 
 
+MAPPER_METHODS = ("colmap", "local")
+
+
 @dataclass(frozen=True)
 class MapperConfig:
+    method: str = "colmap"
+    """How a keyframe's new map points are made: "colmap" (this module: COLMAP's ``IncrementalTriangulator``
+    with one angle threshold, matched with ``neighbors`` keyframes; the ``seed`` preset) or "local"
+    (``slamkit.stages.local_mapper``: ORB-SLAM's local mapping, points created against 10-20 covisible
+    keyframes, checked, culled when tracking does not find them, and fused; config ``local_mapping``)."""
     neighbors: int = 4
     """The new keyframe is matched with the last keyframe and up to ``neighbors - 1`` covisible ones."""
     max_epipolar_error_px: float = 2.0
@@ -60,6 +68,8 @@ class MapperConfig:
     the map is rebuilt without them (``SlamMap.compact``; amortized O(1) per keyframe). 0: never."""
 
     def validate(self) -> None:
+        if self.method not in MAPPER_METHODS:
+            raise ConfigError(f"mapper.method must be one of {', '.join(MAPPER_METHODS)} (got {self.method!r})")
         if self.compact_dropped < 0:
             raise ConfigError(f"mapper.compact_dropped must be >= 0 (got {self.compact_dropped})")
         if self.neighbors < 1:
