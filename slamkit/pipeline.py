@@ -255,7 +255,7 @@ class Slam:
             record.status = SKIPPED
             timings["initialize"] = time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
-        res = self.initializer.step(ff)
+        res = self.initializer.step(ff, last=self.done)  # the cursor has moved past this frame
         timings["initialize"] = time.perf_counter() - t
         if not res.initialized:
             record.status = INITIALIZING
@@ -516,11 +516,7 @@ class Slam:
                 "config": self.config.to_dict()}
 
     def _why_not_initialized(self) -> str:
-        """Why no map exists yet (for the summary): too short a sequence, or the initializer's last reason."""
-        c = self.config.initializer
-        if c.strategy == "best_pair" and len(self.indices) < c.init_frames:
-            return (f"the sequence has {len(self.indices)} frames, fewer than the initialization window "
-                    f"(initializer.init_frames = {c.init_frames}): lower init_frames to at least 2")
+        """Why no map exists yet (for the summary): the initializer's last reason."""
         if self.state.init_message:
             return f"no initial pair found; last attempt: {self.state.init_message}"
         if not self.state.records:

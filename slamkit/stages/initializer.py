@@ -39,7 +39,22 @@ class InitializerConfig:
     strategy: str = "best_pair"
     """"best_pair" (seed §3.3) or "first_inliers" (seed 2: first frame + first frame with >= 90 % E inliers)."""
     init_frames: int = 20
-    """Size of the initialization window N (frames)."""
+    """Largest size of the initialization window N (frames); with ``window_overlap`` the window closes
+    earlier when the camera moves fast, and at the end of the sequence it is tried with what it holds."""
+    window_overlap: float = 0.5
+    """best_pair's motion window: the window is tried as soon as the newest frame shares fewer window matches
+    with the window's first frame than this fraction of what the first two frames share (fast motion: a fixed
+    window of N frames would span so much that the map made from it is out of view by its end). 0: always
+    N frames."""
+    verify_frames: int = 4
+    """The two-view map of a candidate pair must explain up to this many other window frames (the nearest to
+    the pair's second frame, after it first): each frame that shares at least ``min_verify_inliers`` window
+    matches with the map's points needs ``min_verify_ratio`` of them as PnP inliers, else the pair is
+    rejected as a wrong two-view geometry (repeated texture, a look-alike). 0: no check."""
+    min_verify_ratio: float = 0.5
+    """See ``verify_frames``."""
+    min_verify_inliers: int = 30
+    """See ``verify_frames``."""
     min_matches: int = 100
     """Inlier matches a pair needs."""
     min_tri_angle_deg: float = 1.5
@@ -49,6 +64,9 @@ class InitializerConfig:
     """first_inliers: essential-matrix inliers / matches a pair needs."""
     min_points: int = 80
     """Map points the initial map needs after BA and filtering."""
+    min_points_at_end: int = 50
+    """What ``min_points`` becomes when the sequence ends before a map was made (no better pair will come):
+    ORB-SLAM's minimum for a monocular initialization."""
     max_pair_trials: int = 6
     """Candidate second images tried per window."""
     max_error_px: float = 2.0
@@ -80,11 +98,19 @@ class InitializerConfig:
             raise ConfigError(f"initializer.init_frames must be >= 2 (got {self.init_frames})")
         if self.min_matches < 8:
             raise ConfigError(f"initializer.min_matches must be >= 8 (got {self.min_matches})")
+        if not 0 <= self.window_overlap < 1:
+            raise ConfigError(f"initializer.window_overlap must be in [0, 1) (got {self.window_overlap})")
+        if self.verify_frames < 0 or not 0 <= self.min_verify_ratio <= 1 or self.min_verify_inliers < 4:
+            raise ConfigError("initializer: verify_frames >= 0, min_verify_ratio in [0, 1] and min_verify_inliers "
+                              f">= 4 needed (got {self.verify_frames}, {self.min_verify_ratio}, "
+                              f"{self.min_verify_inliers})")
         if not 0 < self.min_inlier_ratio <= 1:
             raise ConfigError(f"initializer.min_inlier_ratio must be in (0, 1] (got {self.min_inlier_ratio})")
         if self.max_pose_disagreement_deg <= 0:
             raise ConfigError("initializer.max_pose_disagreement_deg must be > 0 "
                               f"(got {self.max_pose_disagreement_deg})")
+        if not 8 <= self.min_points_at_end <= self.min_points:
+            raise ConfigError(f"initializer.min_points_at_end must be in [8, min_points] (got {self.min_points_at_end})")
         if self.min_tri_angle_deg < 0:
             raise ConfigError(f"initializer.min_tri_angle_deg must be >= 0 (got {self.min_tri_angle_deg})")
 
@@ -143,6 +169,10 @@ class Initializer:
         essential.max_error = config.max_error_px
         essential.random_seed = config.random_seed
         self._essential_ransac = essential
+        pnp = pycolmap.AbsolutePoseEstimationOptions()
+        pnp.ransac.max_error = 4 * config.max_error_px
+        pnp.ransac.random_seed = config.random_seed
+        self._pnp_options = pnp
 
     @property
     def window(self) -> InitializerWindow:
@@ -174,7 +204,10 @@ class Initializer:
             self._matches[key] = np.stack([ia[m[:, 0]], ib[m[:, 1]]], axis=1) if len(m) else m
         return self._matches[key]
 
-    def step(self, frame: FrameFeatures) -> InitResult:
+    def step(self, frame: FrameFeatures, last: bool = False) -> InitResult:
+        """Buffer ``frame`` and try to initialize when the window is complete: ``init_frames`` frames, the
+        motion window closed (``window_overlap``), or ``last`` (no frame follows: a sequence shorter than the
+        window is tried with what it has)."""
         c = self.config
         self.frames.append(frame)
         for other in self.frames[:-1]:  # match exhaustively as frames arrive
@@ -182,14 +215,16 @@ class Initializer:
                 self._match(other, frame)
         if c.strategy == "first_inliers":
             result = self._try_first_inliers()
-        elif len(self.frames) < c.init_frames:
+        elif len(self.frames) < c.init_frames and not last and not self._moved_on():
             return InitResult("collecting", f"buffered {len(self.frames)}/{c.init_frames} frames")
         else:
-            result = self._try_best_pair()
+            result = self._try_best_pair(c.min_points_at_end if last else c.min_points)
         if result.initialized:
             result = InitResult(**{**result.__dict__, "frames": tuple(self.history + self.frames)})
             self.reset()
             return result
+        if last:
+            return InitResult("failed", f"{result.reason}; the sequence ended")
         if len(self.frames) >= c.init_frames:  # slide the window
             drop = max(1, len(self.frames) // 2) if c.strategy == "best_pair" else 1
             gone = {f.index for f in self.frames[:drop]}
@@ -200,8 +235,16 @@ class Initializer:
             return InitResult("failed", f"{result.reason}; window slides by {drop} frames")
         return InitResult("collecting", f"{result.reason}; buffered {len(self.frames)}/{c.init_frames} frames")
 
+    def _moved_on(self) -> bool:
+        """The motion window is closed: the newest frame shares fewer window matches with the first than
+        ``window_overlap`` of what the first two share (at least 3 frames buffered)."""
+        c, f = self.config, self.frames
+        if c.window_overlap <= 0 or len(f) < 3:
+            return False
+        return len(self._match(f[0], f[-1])) < c.window_overlap * len(self._match(f[0], f[1]))
+
     # ------------------------------------------------------------------ strategies
-    def _try_best_pair(self) -> InitResult:
+    def _try_best_pair(self, min_points: int) -> InitResult:
         frames = self.frames
         n = len(frames)
         counts = np.zeros((n, n), np.int64)
@@ -221,9 +264,12 @@ class Initializer:
         reasons = []
         for j in order[: self.config.max_pair_trials]:
             a, b = (first, int(j)) if first < j else (int(j), first)
-            res = self._try_pair(frames[a], frames[b])
+            res = self._try_pair(frames[a], frames[b], min_points=min_points)
             if res.initialized:
-                return res
+                contradiction = self._verify(res, frames[a], frames[b])
+                if not contradiction:
+                    return res
+                res = InitResult("failed", contradiction)
             reasons.append(f"{frames[a].index}-{frames[b].index}: {res.reason}")
         why = "; ".join(reasons[:3]) or "no matches in the window"
         return InitResult("failed", f"no initial pair in frames {frames[0].index}-{frames[-1].index} ({why})")
@@ -233,8 +279,10 @@ class Initializer:
             return InitResult("collecting", "waiting for a second frame")
         return self._try_pair(self.frames[0], self.frames[-1], need_ratio=self.config.min_inlier_ratio)
 
-    def _try_pair(self, fa: FrameFeatures, fb: FrameFeatures, need_ratio: float = 0.0) -> InitResult:
+    def _try_pair(self, fa: FrameFeatures, fb: FrameFeatures, need_ratio: float = 0.0,
+                  min_points: int | None = None) -> InitResult:
         c = self.config
+        min_points = c.min_points if min_points is None else min_points
         if len(self._match(fa, fb)) < c.min_matches:
             return InitResult("failed", f"{len(self._match(fa, fb))} matches < {c.min_matches}")
         matches = self.matcher.match(fa.features, fb.features)
@@ -253,9 +301,9 @@ class Initializer:
                                 self.camera.K)
         n_good = int((parallax >= c.min_tri_angle_deg).sum())
         angle = float(np.median(parallax))
-        if n_good < c.min_points:
+        if n_good < min_points:
             return InitResult("failed", f"{n_good} matches with parallax >= {c.min_tri_angle_deg:g} deg "
-                                        f"< {c.min_points} (median {angle:.2f} deg)")
+                                        f"< {min_points} (median {angle:.2f} deg)")
         ambiguity = self._ambiguity(fa, fb, matches, tvg)  # after the parallax test: a still camera fails that
         if ambiguity:
             return InitResult("failed", ambiguity)
@@ -272,12 +320,42 @@ class Initializer:
         slam_map.observations.filter_all_points3D(c.max_reproj_error_px, c.min_track_angle_deg)
         slam_map.changed()
         n_points = slam_map.num_points
-        if n_points < c.min_points:
-            return InitResult("failed", f"{n_points} map points after BA < {c.min_points}")
+        if n_points < min_points:
+            return InitResult("failed", f"{n_points} map points after BA < {min_points}")
         return InitResult("initialized", f"frames {fa.index} and {fb.index}: {len(inl)} inliers, "
                                          f"{n_good} with parallax >= {c.min_tri_angle_deg:g} deg (median "
                                          f"{angle:.1f} deg), {n_points} points",
                           slam_map, fa.index, fb.index, angle, n_points)
+
+    def _verify(self, res: InitResult, fa: FrameFeatures, fb: FrameFeatures) -> str:
+        """"" when the two-view map of ``fa``, ``fb`` explains the window's other frames (``verify_frames``),
+        else why not: each checked frame is posed by PnP (LO-RANSAC) on its window matches to the keypoints of
+        the pair that have a map point."""
+        c = self.config
+        if c.verify_frames <= 0:
+            return ""
+        others = [f for f in self.frames if f.index not in (fa.index, fb.index)]
+        others.sort(key=lambda f: (f.index < fb.index, abs(f.index - fb.index)))  # after the pair first
+        slam_map = res.slam_map
+        for f in others[: c.verify_frames]:
+            xy, pids = [], []
+            for image_id, kf in ((1, fa), (2, fb)):
+                m = self._match(kf, f) if kf.index < f.index else self._match(f, kf)[:, ::-1]
+                p = slam_map.point3D_ids(image_id)[m[:, 0]]
+                xy.append(f.keypoints[m[p >= 0, 1]])
+                pids.append(p[p >= 0])
+            kp_xy, pids = np.concatenate(xy), np.concatenate(pids)
+            _, first = np.unique(kp_xy[:, 0] * 1e5 + kp_xy[:, 1], return_index=True)  # one per keypoint
+            kp_xy, pids = kp_xy[first], pids[first]
+            if len(pids) < c.min_verify_inliers:
+                continue  # too little in common to say
+            est = pycolmap.estimate_and_refine_absolute_pose(kp_xy, slam_map.points_xyz(pids), self._pycamera,
+                                                              self._pnp_options)
+            inliers = 0 if est is None else int(est["num_inliers"])
+            if inliers < max(c.min_verify_inliers, c.min_verify_ratio * len(pids)):
+                return (f"the two-view map explains only {inliers} of frame {f.index}'s {len(pids)} matches to it "
+                        f"(< {c.min_verify_ratio:g}): a wrong two-view geometry")
+        return ""
 
     def _ambiguity(self, fa: FrameFeatures, fb: FrameFeatures, matches: np.ndarray, tvg) -> str:
         """"" when the relative pose is unambiguous, else why not: a homography-based pose (planar or
