@@ -276,6 +276,15 @@ class SlamMap:
         pts = self.reconstruction.points3D
         return np.array([pts[int(p)].xyz for p in point3D_ids], dtype=np.float64).reshape(-1, 3)
 
+    def num_points_observed(self, image_id: int, min_observers: int = 1) -> int:
+        """Map points of the keyframe that at least ``min_observers`` keyframes observe (ORB-SLAM's
+        ``TrackedMapPoints(nMinObs)``); 1: all of its points."""
+        if min_observers <= 1:
+            return int(self.reconstruction.image(image_id).num_points3D)
+        pids = self.point3D_ids(image_id)
+        point3D = self.reconstruction.point3D
+        return sum(point3D(p).track.length() >= min_observers for p in pids[pids >= 0].tolist())
+
     def covisible_with(self, point3D_ids: np.ndarray, limit: int | None = None) -> list[tuple[int, int]]:
         """Keyframes observing the given points: [(image id, points among them it observes)], most first, ties
         by image id (the covisibility of a frame that is not a keyframe yet, from its tracked points)."""

@@ -344,7 +344,8 @@ class Slam:
         if not res.relocalized:
             return None
         st.local_map, st.last_keyframe = res.local_map, res.keyframe
-        st.points_at_last_keyframe = seg.slam_map.reconstruction.image(res.keyframe).num_points3D
+        st.points_at_last_keyframe = seg.slam_map.num_points_observed(res.keyframe,
+                                                                      self.config.keyframes.reference_min_observers)
         seg.relocalizations += 1
         return res.tracking
 
@@ -398,7 +399,8 @@ class Slam:
             seg, slam_map = st.segment, st.segment.slam_map  # after a merge: the earlier segment's map
         else:
             loop, merge = LoopClosingResult(), None
-        st.points_at_last_keyframe = slam_map.reconstruction.image(st.last_keyframe).num_points3D
+        st.points_at_last_keyframe = slam_map.num_points_observed(st.last_keyframe,
+                                                                  self.config.keyframes.reference_min_observers)
         t = time.perf_counter()
         st.local_map = self._local_map(slam_map, st.last_keyframe)
         timings["local_map"] = time.perf_counter() - t

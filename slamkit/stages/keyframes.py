@@ -29,6 +29,10 @@ class KeyframeConfig:
     weak_tracking_ratio: float = 0.5
     """Insert a keyframe anyway when the tracked map points fall below this fraction of those tracked at
     the last keyframe, so fast motion does not lose the map (0 disables)."""
+    reference_min_observers: int = 1
+    """The weak-tracking rule counts the last keyframe's map points that at least this many keyframes observe
+    (ORB-SLAM: 3, its "tracked map points" of the reference keyframe; with ``weak_tracking_ratio`` 0.9 a
+    keyframe comes as soon as tracking no longer finds most of them); 1: all of its points."""
     min_weak_tracked_matches: int = 20
     """The weak-tracking rule needs at least this many tracked matches to the last keyframe."""
     min_parallax_deg: float = 0.25
@@ -60,6 +64,8 @@ class KeyframeConfig:
             raise ConfigError(f"keyframes.min_parallax_deg must be in [0, 45) degrees (got {self.min_parallax_deg})")
         if not 0 <= self.cull_redundant <= 1:
             raise ConfigError(f"keyframes.cull_redundant must be in [0, 1] (got {self.cull_redundant})")
+        if self.reference_min_observers < 1:
+            raise ConfigError(f"keyframes.reference_min_observers must be >= 1 (got {self.reference_min_observers})")
         if self.cull_keep_recent < 0:
             raise ConfigError(f"keyframes.cull_keep_recent must be >= 0 (got {self.cull_keep_recent})")
         if self.cull_min_observers < 1:
