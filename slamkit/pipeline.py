@@ -311,15 +311,15 @@ class Slam:
         record.degenerate = decision.degenerate
         timings["keyframe"] = time.perf_counter() - t
         message = (f"relocalized against keyframe {reference}: " if relocalized else "") + tr.reason
-        is_kf, ba_kind, (loop, merge) = False, "", (LoopClosingResult(), None)
+        is_kf, ba_kind, (loop, merge), mapping = False, "", (LoopClosingResult(), None), None
         if decision.is_keyframe:
-            is_kf, ba_kind, message, decision, (loop, merge) = self._insert_keyframe(ff, record, tr, decision,
-                                                                                     timings)
+            inserted = self._insert_keyframe(ff, record, tr, decision, timings)
+            is_kf, ba_kind, message, decision, (loop, merge), mapping = inserted
         return self._result(record, TRACKED, message, timings, decision=decision, matches=tr.ref_matches,
                             inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
                             degenerate=decision.degenerate, parallax_deg=parallax, relocalized=relocalized,
                             tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
-                            merge_candidate=loop.merge_candidate, map_merge=merge)
+                            merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping)
 
     def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict) -> StepResult:
         """Neither the local map nor relocalization found the frame; after ``max_lost_frames`` such frames
@@ -351,10 +351,10 @@ class Slam:
 
     def _insert_keyframe(self, ff: FrameFeatures, record: FrameRecord, tr: TrackingResult,
                          decision: KeyframeDecision, timings: dict
-                         ) -> tuple[bool, str, str, KeyframeDecision, LoopClosingResult]:
+                         ) -> tuple[bool, str, str, KeyframeDecision, tuple, object]:
         """Map the frame as a keyframe, bundle-adjust, cull redundant keyframes, close a loop through it, and
         track from it next. Returns (registered, BA kind, message, decision — a rejection by the mapper
-        replaces it, what loop closing did)."""
+        replaces it, (what loop closing did, a map merge), the mapper's result)."""
         st = self.state
         seg = st.segment
         slam_map = seg.slam_map
@@ -371,7 +371,7 @@ class Slam:
         timings["map"] = time.perf_counter() - t
         if not mres.registered:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
-                                                            tr.ref_matches), (LoopClosingResult(), None)
+                                                            tr.ref_matches), (LoopClosingResult(), None), mres
         t = time.perf_counter()
         # the filter angle after BA: local mapping's parallax for the points it makes, a starving keyframe's
         bres = self.bundle_adjuster.step(slam_map, mres.image_id, self.config.local_mapping.min_parallax_deg if local
@@ -404,7 +404,7 @@ class Slam:
         t = time.perf_counter()
         st.local_map = self._local_map(slam_map, st.last_keyframe)
         timings["local_map"] = time.perf_counter() - t
-        return True, bres.kind, message, decision, (loop, merge)
+        return True, bres.kind, message, decision, (loop, merge), mres
 
     def _close_loop(self, seg: Segment, image_id: int) -> tuple[LoopClosingResult, MergeResult | None]:
         """:class:`~slamkit.stages.loop_closer.LoopCloser` through the new keyframe; a place of an earlier segment

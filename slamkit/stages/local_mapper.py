@@ -357,7 +357,8 @@ class LocalMapper:
             return 0, 0
         p_idx, kp = idx[pairs[:, 0]], pairs[:, 1]
         err2 = ((uv[p_idx] - kf.keypoints[kp]) ** 2).sum(axis=1)
-        ok = (err2 <= CHI2_2DOF * keypoint_scales(kf.features)[kp] ** 2) & (err2 <= (c.fuse_radius_px * pscale[p_idx]) ** 2)
+        bound = np.minimum(CHI2_2DOF * keypoint_scales(kf.features)[kp] ** 2, (c.fuse_radius_px * pscale[p_idx]) ** 2)
+        ok = err2 <= bound
         pids, kps = ids[p_idx[ok]], kp[ok]
         free = target_pids[kps] < 0
         added = slam_map.add_observations(target, kps[free], pids[free])
