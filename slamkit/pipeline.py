@@ -28,7 +28,7 @@ from .local_map import LocalMap
 from .map import SlamMap
 from .merging import MergeResult, merge_segments
 from .results import StepResult, TrackedMatches
-from .session import load_session, save_session
+from .session import load_session, save_session, unfinished_snapshot
 from .sources import open_source
 from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
@@ -126,6 +126,8 @@ class Slam:
         self.loader.configure(self.indices, extractor, self.camera, c.prefetch)
         self.state = SlamState()
         """Everything the run has done (records, segments, cursor, counters): what a session saves."""
+        self.unfinished_session: dict[str, bytes] | None = None
+        """The session files just before :meth:`finish` (what a finished run's session/ holds), or None."""
         self.last_frame: Frame | None = None
         self.last_features: FrameFeatures | None = None
         self.last_result: StepResult | None = None
@@ -447,6 +449,7 @@ class Slam:
         st = self.state
         if st.finished:
             return
+        self.unfinished_session = unfinished_snapshot(self)  # saved as session/: --resume extends from here
         st.finished = True
         t = time.perf_counter()
         for seg in st.segments:

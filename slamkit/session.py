@@ -40,6 +40,7 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -95,9 +96,36 @@ def save_session(slam: "Slam", out_dir: str | Path) -> Path:
 
 def write_session(slam: "Slam", folder: str | Path) -> None:
     """Write the session files into ``folder`` (created if needed; not atomic by itself — :func:`save_session`
-    and :func:`slamkit.io.save_run` call it inside a temporary folder). ``session.json`` is written last."""
+    and :func:`slamkit.io.save_run` call it inside a temporary folder). ``session.json`` is written last.
+
+    A finished run (:meth:`Slam.finish`: final global BA, frames tracked again) is saved as it was just
+    before ``finish()`` (:func:`unfinished_snapshot`), marked ``"finished": true``: resumed with more frames
+    it continues exactly as an uninterrupted longer run; resumed as it is, ``finish()`` runs again on load.
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    snapshot = getattr(slam, "unfinished_session", None) if slam.finished else None
+    if snapshot is not None:
+        for rel, data in snapshot.items():
+            if rel != SESSION_FILE:
+                (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+                (folder / rel).write_bytes(data)
+        meta = json.loads(snapshot[SESSION_FILE])
+        (folder / SESSION_FILE).write_text(json.dumps({**meta, "finished": True}, indent=1))
+        return
+    _write_state_files(slam, folder)
+
+
+def unfinished_snapshot(slam: "Slam") -> dict[str, bytes]:
+    """The session files of ``slam`` as they are now (relative path -> bytes): taken by :meth:`Slam.finish`
+    before its final BA, written by :func:`write_session` in place of the finished state. Costs one session's
+    size in memory, nothing on disk (a run folder still holds one session)."""
+    with tempfile.TemporaryDirectory(prefix="slamkit-session-") as tmp:
+        _write_state_files(slam, Path(tmp))
+        return {p.relative_to(tmp).as_posix(): p.read_bytes() for p in sorted(Path(tmp).rglob("*")) if p.is_file()}
+
+
+def _write_state_files(slam: "Slam", folder: Path) -> None:
     arrays: dict[str, np.ndarray] = {}
     meta: dict[str, Any] = {
         "format": FORMAT, "version": VERSION, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -237,7 +265,14 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     with _npz(folder / "state.npz") as arrays:
         _restore(slam, meta, arrays, folder)
     if not slam.done:
-        slam.finished = False  # more frames to come (max_frames raised): finish() runs again at the end
+        if slam.finished:  # saved after finish() without the state before it (sessions of older versions)
+            raise SessionError(
+                f"{folder}: this run was saved after its final bundle adjustment without the state before it, "
+                f"so it cannot be extended to {len(slam.indices)} frames as a longer run would be; run it again "
+                f"over all frames instead (slamkit run SOURCE --max-frames {len(slam.indices)} --out NEW_FOLDER)")
+        slam.finished = False  # more frames to come (max_frames raised): finish() runs at the end
+    elif meta.get("finished") and not slam.finished:
+        slam.finish()  # the saved run was finished: the same final BA and re-tracking again
     return slam
 
 
