@@ -19,7 +19,7 @@ import numpy as np
 
 from .camera import Intrinsics
 from .config import SlamConfig
-from .errors import CalibrationError, ImageReadError
+from .errors import CalibrationError, ImageReadError, check_type
 from .features import FrameFeatures, create_extractor, create_matcher
 from .frames import FrameLoader, thumbnail
 from .interrupt import deferred_interrupt
@@ -83,6 +83,9 @@ class Slam:
 
     def __init__(self, source: FrameSource | str, config: SlamConfig | str | None = None,
                  callbacks: list[Callback] | None = None):
+        check_type(source, (FrameSource, str, Path), "source", "give a spec ('default'), a path or a FrameSource")
+        check_type(config, (SlamConfig, str, type(None)), "config",
+                   "give a SlamConfig (SlamConfig().with_overrides(...)), a preset name or None")
         if config is None:
             config = SlamConfig()
         elif isinstance(config, str):
@@ -449,7 +452,10 @@ class Slam:
         st = self.state
         if st.finished:
             return
-        self.unfinished_session = unfinished_snapshot(self)  # saved as session/: --resume extends from here
+        try:
+            self.unfinished_session = unfinished_snapshot(self)  # saved as session/: --resume extends from here
+        except OSError:  # no room for the temporary copy: the finished state is saved, and not extended later
+            self.unfinished_session = None
         st.finished = True
         t = time.perf_counter()
         for seg in st.segments:

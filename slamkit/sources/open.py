@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Callable
 
 from ..camera import Intrinsics
-from ..errors import ConfigError, SourceError
+from ..errors import ConfigError, SourceError, missing_reason
 from .base import FrameSource
 from .euroc import open_euroc
 from .folder import has_glob, open_folder
@@ -49,7 +49,10 @@ def detect_layout(path: str | Path) -> str:
     """
     p = Path(path).expanduser()
     if not p.exists():
-        raise SourceError(f"{p} does not exist")
+        raise SourceError(f"{p} {missing_reason(p) or 'does not exist'}")
+    if not p.is_dir() and not p.is_file():
+        raise SourceError(f"{p} is neither a folder nor a video file; give a folder of images, a dataset folder "
+                          "or a video")
     if p.is_file():
         if p.suffix.lower() in VIDEO_EXTENSIONS:
             return "video"
@@ -114,7 +117,7 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
         kw.setdefault("pattern", path.name)
         path, layout = path.parent, "folder"
     if not path.exists():
-        raise SourceError(f"{path} does not exist")
+        raise SourceError(f"{path} {missing_reason(path) or 'does not exist'}")
     if layout is None:
         layout = detect_layout(path)
     opener = OPENERS[layout]
