@@ -21,7 +21,7 @@ from .camera import parse_camera_values
 from .config import PRESETS, SlamConfig
 from .errors import SlamkitError
 from .eval import evaluate
-from .eval.report import evaluate_run
+from .eval.report import check_posed, evaluate_run
 from .exporter import add_export_parser
 from .io.run_dir import check_output, out_dir_lock
 from .io.saved import check_run
@@ -173,6 +173,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return 0
     if run.is_dir():
         check_run(run, ("trajectory_tum.txt", "groundtruth_tum.txt"))
+        check_posed(run)
     est = run / "trajectory_tum.txt" if run.is_dir() else run
     if args.gt:
         gt = check_input_file(args.gt, "--gt")
@@ -337,7 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         return 141
     except Interrupted as e:  # SIGTERM / SIGHUP outside a run: a one-line exit, not a native stack dump
         handler.active = False
-        print(f"slamkit: {e}: stopped", file=sys.stderr)
+        print(f"slamkit: {e}: stopped; every output is either complete or as it was before (files and folders "
+              "are replaced atomically, a temporary one is removed)", file=sys.stderr)
         return e.exit_code
     finally:
         handler.active = False

@@ -9,11 +9,19 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 from pathlib import Path
 
 
+_NUMPY_SCALAR = re.compile(r"np\.(?:float|int|uint|bool|str)_?\d*\(([^()]*)\)")
+
+
 class SlamkitError(Exception):
-    """Base class of every error slamkit raises on purpose."""
+    """Base class of every error slamkit raises on purpose. Its text never shows numpy's scalar reprs
+    (``np.float64(0.5)`` reads as ``0.5``), however the message was formatted."""
+
+    def __str__(self) -> str:
+        return _NUMPY_SCALAR.sub(r"\1", super().__str__())
 
 
 class SourceError(SlamkitError):

@@ -514,6 +514,10 @@ class Slam:
     def _why_not_initialized(self) -> str:
         """Why no map exists yet (for the summary): too short a sequence, or the initializer's last reason."""
         c = self.config.initializer
+        featureless = sum(r.status == SKIPPED and not r.unreadable for r in self.state.records)
+        if self.state.records and featureless == len(self.state.records):
+            return (f"all {featureless} frames so far had fewer than 8 keypoints (featureless: black, blank or "
+                    "badly blurred images?)")
         if c.strategy == "best_pair" and len(self.indices) < c.init_frames:
             return (f"the sequence has {len(self.indices)} frames, fewer than the initialization window "
                     f"(initializer.init_frames = {c.init_frames}): lower init_frames to at least 2")

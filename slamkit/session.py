@@ -55,7 +55,7 @@ from .errors import ConfigError, SessionError, SlamkitError  # noqa: F401 - Sess
 from .features import Features, FrameFeatures
 from .interrupt import deferred_interrupt  # noqa: F401 - re-exported: it lived here
 from .io.atomic import atomic_dir
-from .io.run_dir import SESSION_MARKER, write_manifest
+from .io.run_dir import SESSION_MARKER, check_output, out_dir_lock, write_manifest
 from .io.saved import check_session
 from .local_map import LocalMap
 from .loop_verification import ConsistentGroup
@@ -87,8 +87,8 @@ Every other scalar field is saved under its own name, so a new counter in the st
 # ----------------------------------------------------------------------------------------------- saving
 def save_session(slam: "Slam", out_dir: str | Path) -> Path:
     """Write ``slam``'s session to ``out_dir`` (replaced atomically); returns the folder."""
-    out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
+    out_dir = check_output(out_dir, "session", [getattr(slam, "source_spec", None), slam.source], flag="out_dir")
+    with out_dir_lock(out_dir, flag="out_dir", what="session folder"), atomic_dir(out_dir) as tmp:
         write_session(slam, tmp)
         write_manifest(tmp, SESSION_MARKER)  # sizes and checksums, checked before it is read
     return out_dir
@@ -247,7 +247,10 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise SessionError(f"{folder / SESSION_FILE}: not a slamkit session of version {VERSION} "
                            f"(format {meta.get('format')!r}, version {meta.get('version')!r})")
-    saved_config = SlamConfig.from_dict(meta["config"])
+    try:
+        saved_config = SlamConfig.from_dict(meta["config"])
+    except (KeyError, TypeError, AttributeError) as e:  # ConfigError (a bad value) names the value itself
+        raise _unreadable(folder, e) from None
     cfg = _resolve_config(saved_config, config, folder)
     if source is None:
         source = meta["source"].get("spec")
@@ -258,12 +261,18 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     _check_source(meta["source"], slam.source, folder)
     if meta["source"].get("spec") and getattr(slam, "source_spec", None) is None:
         slam.source_spec = meta["source"]["spec"]
-    cursor = int(meta["state"]["_cursor"])
+    try:
+        cursor = int(meta["state"]["_cursor"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise _unreadable(folder, e) from None
     if cursor > len(slam.indices):
         raise ConfigError(f"{folder}: the session processed {cursor} frames but this configuration selects "
                           f"{len(slam.indices)} (max_frames={cfg.max_frames}); raise max_frames")
     with _npz(folder / "state.npz") as arrays:
-        _restore(slam, meta, arrays, folder)
+        try:
+            _restore(slam, meta, arrays, folder)
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:  # edited by hand, or older
+            raise _unreadable(folder, e) from None
     if not slam.done:
         if slam.finished:  # saved after finish() without the state before it (sessions of older versions)
             raise SessionError(
@@ -274,6 +283,12 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     elif meta.get("finished") and not slam.finished:
         slam.finish()  # the saved run was finished: the same final BA and re-tracking again
     return slam
+
+
+def _unreadable(folder: Path, e: BaseException) -> SessionError:
+    what = f"entry {e.args[0]!r} is missing" if isinstance(e, KeyError) else f"{type(e).__name__}: {e}"
+    return SessionError(f"{folder / SESSION_FILE}: not a session this slamkit can read ({what}); it was edited "
+                        "or written by another version — start a new run (slamkit run SOURCE --out NEW_FOLDER)")
 
 
 def _resolve_config(saved: SlamConfig, config, folder: Path) -> SlamConfig:

@@ -372,3 +372,66 @@ def test_ablate_with_workers_stops_within_seconds_on_sigterm(tmp_path):
     last = err.strip().splitlines()[-1]
     kept = len(list((out / "runs").glob("*.json")))
     assert f"{kept} of 2 runs are kept" in last and "Traceback" not in err, err
+
+
+# ----------------------------------------------------------------------------------------------- a source that changed
+def test_export_after_images_were_deleted_names_the_source_and_the_counts(tmp_path):
+    """The run's image folder lost frames after the run: the export says so (counts, folder), not "frame 10 is
+    not frame 30"."""
+    src = synthetic_source("handheld", frames=30)
+    tum = write_tum_sequence(src, tmp_path / "tum")
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for p in sorted((tum / "rgb").glob("*.png")):
+        shutil.copy(p, folder / p.name)
+    cam = src.camera
+    config = SlamConfig().with_overrides(init_frames=10, camera=f"{cam.fx},{cam.fy},{cam.cx},{cam.cy}")
+    run = tmp_path / "run"
+    assert run_to_folder(str(folder), run, config, evaluate_ate=False).saved
+    for p in sorted(folder.glob("*.png"))[:10]:
+        p.unlink()
+    with pytest.raises(SlamkitError, match=rf"has 20 frames now but had 30 when the run was made") as e:
+        export(run, tmp_path / "ds", frames="all")
+    assert str(folder) in str(e.value) and "\n" not in str(e.value)
+    assert not (tmp_path / "ds").exists()
+
+
+def test_a_featureless_sequence_says_why_and_eval_says_nothing_was_posed(tmp_path, trajectory, capsys):
+    folder = tmp_path / "black"
+    folder.mkdir()
+    import cv2
+
+    for i in range(12):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), np.zeros((240, 320, 3), np.uint8))
+    run = tmp_path / "run"
+    assert main(["run", str(folder), "--camera", "300", "--out", str(run), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "all 12 frames so far had fewer than 8 keypoints (featureless" in err, err
+    for extra in ([], ["--json-only"]):
+        assert main(["eval", str(run), "--gt", str(trajectory[1]), *extra]) == 2
+        assert "the run posed no frame, so there is nothing to evaluate" in _one_line(capsys.readouterr().err)
+
+
+OLD_SESSION_EDITS = [
+    ("cursor removed", lambda m: m["state"].pop("_cursor"), "entry '_cursor' is missing"),
+    ("config removed", lambda m: m.pop("config"), "entry 'config' is missing"),
+    ("records emptied", lambda m: m.__setitem__("records", {}), "not a session this slamkit can read"),
+    ("a field of the wrong type", lambda m: m.__setitem__("config", {"num_features": "lots"}), "num_features"),
+]
+
+
+@pytest.mark.parametrize("name, edit, message", OLD_SESSION_EDITS, ids=[c[0] for c in OLD_SESSION_EDITS])
+def test_a_hand_edited_session_without_manifest_is_one_line(tmp_path, run_folder, capsys, name, edit, message):
+    """A session of the format before manifests (no .slamkit-run, no .slamkit-session.json) edited by hand:
+    resuming it is one line naming the file, never a KeyError from deep inside."""
+    import json
+
+    run = tmp_path / "run"
+    shutil.copytree(run_folder, run)
+    (run / ".slamkit-run").unlink()
+    (run / "session" / ".slamkit-session.json").unlink()
+    meta = json.loads((run / "session" / "session.json").read_text())
+    edit(meta)
+    (run / "session" / "session.json").write_text(json.dumps(meta))
+    assert main(["run", "default", "--max-frames", "5", "--out", str(run), "--resume", "-q"]) == 2
+    assert message in _one_line(capsys.readouterr().err)

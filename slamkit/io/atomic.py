@@ -88,7 +88,9 @@ def _atomic_write(path: str | os.PathLike, chunks: Iterable[bytes]) -> Path:
         with contextlib.suppress(OSError):
             tmp.unlink()
         if isinstance(e, OSError):
-            raise OutputError(write_failure(path, e, written, existed, "file")) from None
+            err = OutputError(write_failure(path, e, written, existed, "file"))
+            err.os_error = e  # for an enclosing atomic_dir, which words it for the whole folder
+            raise err from None
         raise
     _fsync_dir(parent)
     return path
@@ -146,10 +148,13 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         os.umask(mask)
         os.chmod(tmp, 0o777 & ~mask)
         backup = _commit(tmp, path, parent)
-    except OSError as e:  # e.g. a full disk while the block wrote: one line, the old folder untouched
+    except (OSError, OutputError) as e:  # e.g. a full disk while the block wrote: one line, old folder untouched
         written = _tree_size(tmp)
         _remove_tree(tmp)
-        raise OutputError(write_failure(path, e, written, existed, "folder")) from None
+        cause = e if isinstance(e, OSError) else getattr(e, "os_error", None)
+        if cause is not None:
+            raise OutputError(write_failure(path, cause, written, existed, "folder")) from None
+        raise OutputError(str(e).replace(str(tmp), str(path))) from None  # never the temporary folder's name
     except BaseException:
         _remove_tree(tmp)
         raise

@@ -170,9 +170,11 @@ def _overlap(out: Path, src: Path) -> str | None:
     return None
 
 
-OUTPUT_KINDS = {"run": "slamkit run", "export": "slamkit export", "sweep": "slamkit sweep", "file": "file"}
-"""What each command writes: a run folder (``run``, ``save``, the notebook's Save), an export folder, a sweep
-folder (``ablate``) or a single file (``gt``). :func:`check_output` knows each kind's own outputs."""
+OUTPUT_KINDS = {"run": "slamkit run", "session": "slamkit session", "export": "slamkit export",
+                "sweep": "slamkit sweep", "file": "file"}
+"""What each command writes: a run folder (``run``, ``save``, the notebook's Save), a session folder
+(``Slam.save_session``), an export folder, a sweep folder (``ablate``) or a single file (``gt``).
+:func:`check_output` knows each kind's own outputs."""
 
 EXPORT_MARKER = ".slamkit-export"
 """File marking a folder written by :func:`slamkit.exporter.export`."""
@@ -245,6 +247,9 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
                          " to write the sweep's files among them")
                 raise OutputError(f"{flag} {out}: folder is not empty and is not a {what} ({shown}); nothing was "
                                   f"written — choose another folder, or pass --overwrite (overwrite=True){again}")
+    above = next((p for p in out.parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise OutputError(f"{flag} {out}: cannot be created, {above} is a file")
     _check_writable(out.parent, f"{flag} {out}")
     return out
 
@@ -260,6 +265,9 @@ def _foreign(out: Path, kind: str) -> list[str]:
     names = sorted(os.listdir(out))
     if kind == "run":
         return foreign_entries(out)
+    if kind == "session":
+        own = (out / SESSION_MARKER).is_file() or _is_session_dir(out)
+        return [n for n in names if not (own and SESSION_ENTRY.match(n))]
     if kind == "export":
         return [] if (out / EXPORT_MARKER).is_file() else names
     if (out / SWEEP_FILE).is_file():  # a sweep: its own entries (and the user's notes beside them) are fine
