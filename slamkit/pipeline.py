@@ -83,7 +83,9 @@ class Slam:
 
     def __init__(self, source: FrameSource | str, config: SlamConfig | str | None = None,
                  callbacks: list[Callback] | None = None):
-        check_type(source, (FrameSource, str, Path), "source", "give a spec ('default'), a path or a FrameSource")
+        if not isinstance(source, (str, Path)) and not all(hasattr(source, a) for a in ("camera", "__len__")):
+            check_type(source, (FrameSource, str, Path), "source", "give a spec ('default'), a path or a "
+                       "FrameSource (or an object with its camera, frames and timestamps)")
         check_type(config, (SlamConfig, str, type(None)), "config",
                    "give a SlamConfig (SlamConfig().with_overrides(...)), a preset name or None")
         if config is None:
