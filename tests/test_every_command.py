@@ -118,13 +118,22 @@ def test_gt_writes_a_new_file_and_replaces_only_with_overwrite(tmp_path, tum_sou
     assert out.read_bytes() == first and not list(tmp_path.glob(".gt.txt*"))  # atomic: no temporary left
 
 
-def test_a_second_writer_of_one_output_fails_at_once(tmp_path, tum_source, capsys):
-    """One writer at a time for every kind of output: gt (a file) and export (a folder) under a held lock."""
+def test_a_second_writer_of_one_output_fails_at_once(tmp_path, tum_source, run_folder, capsys):
+    """One writer at a time for every kind of output: gt (a file), export (a folder), a run, a sweep; each
+    under a lock another writer holds (here this process, as a concurrent command would)."""
     out = tmp_path / "gt.txt"
     with out_dir_lock(out, flag="OUT", what="file"):
         assert main(["gt", str(tum_source), str(out)]) == 2
     assert f"process {os.getpid()} is writing this file" in _one_line(capsys.readouterr().err)
     assert not out.exists()
+    for args in (["export", str(run_folder), "--format", "colmap", "--out", str(tmp_path / "ds")],
+                 ["run", "default", "--max-frames", "3", "--out", str(tmp_path / "ds")],
+                 ["ablate", "default", "--grid", "init_frames=10", "--workers", "0", "--out", str(tmp_path / "ds")]):
+        with out_dir_lock(tmp_path / "ds"):
+            assert main([*args, "-q"]) == 2, args
+        err = capsys.readouterr().err  # (ablate prints its plan first; the error is still one line)
+        assert f"process {os.getpid()} is writing this" in err.strip().splitlines()[-1] and "Traceback" not in err
+        assert not (tmp_path / "ds").exists()
 
 
 # ----------------------------------------------------------------------------------------------- export, ablate, run

@@ -104,14 +104,19 @@ def export(run_dir: str | Path, out: str | Path, format: str = "colmap", frames:
         raise ConfigError(f"format must be one of {', '.join(FORMATS)} (got {format!r})")
     out, run_dir = Path(out), Path(run_dir)
     _check_out(out, run_dir, None)  # before anything is read; again below with the source's paths
+    with out_dir_lock(out, flag="out", what="export folder"):  # one writer at a time, from the first check on
+        return _export(run_dir, out, format, frames, undistort, progress, source)
+
+
+def _export(run_dir: Path, out: Path, format: str, frames: str, undistort: bool | None,
+            progress: ProgressCallback | None, source: FrameSource | str | None) -> ExportResult:
     run = load_run(run_dir, source.camera if isinstance(source, FrameSource) else None)
     selected = select_frames(run.frames, frames)
     src = reopen_source(run, source)
     _check_out(out, run_dir, src)
     camera = ExportCamera.create(run.camera, bool(undistort))
     names = {f.index: file_name(run, src, f, camera) for f in selected}
-    with out_dir_lock(out, flag="out", what="export folder"), \
-            atomic_dir(out, overwrite=(out / MARKER).is_file()) as tmp:  # _check_out allowed it
+    with atomic_dir(out, overwrite=(out / MARKER).is_file()) as tmp:  # _check_out allowed it
         (tmp / MARKER).write_text(f"slamkit export of {run_dir.resolve()}\n")
         extra = _write_images(run, src, selected, camera, tmp / "images", names, progress)
         rec = build_model(run.model, selected, camera, names, extra)
