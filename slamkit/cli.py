@@ -336,6 +336,12 @@ def main(argv: list[str] | None = None) -> int:
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141
+    except OSError as e:  # the OS refused a path given on the command line (name too long, no permission, ...)
+        handler.active = False
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"slamkit: error: {where}{e.strerror or e} (the operating system refused it; check the path)",
+              file=sys.stderr)
+        return 2
     except Interrupted as e:  # SIGTERM / SIGHUP outside a run: a one-line exit, not a native stack dump
         handler.active = False
         print(f"slamkit: {e}: stopped; every output is either complete or as it was before (files and folders "

@@ -444,3 +444,23 @@ def test_a_hand_edited_session_without_manifest_is_one_line(tmp_path, run_folder
     (run / "session" / "session.json").write_text(json.dumps(meta))
     assert main(["run", "default", "--max-frames", "5", "--out", str(run), "--resume", "-q"]) == 2
     assert message in _one_line(capsys.readouterr().err)
+
+
+LONG = "a" * 300
+LONG_INPUT_COMMANDS = [
+    ["run", "LONG", "--out", "OUT", "-q"],
+    ["eval", "LONG"],
+    ["eval", "RUN", "--gt", "LONG"],
+    ["export", "LONG", "--format", "colmap", "--out", "OUT", "-q"],
+    ["gt", "LONG", "OUT.txt"],
+]
+
+
+@pytest.mark.parametrize("args", LONG_INPUT_COMMANDS, ids=[" ".join(a[:2]) for a in LONG_INPUT_COMMANDS])
+def test_an_input_path_the_os_refuses_is_one_line_in_every_command(tmp_path, run_folder, capsys, args):
+    args = [str(tmp_path / LONG) if a == "LONG" else str(run_folder) if a == "RUN" else
+            str(tmp_path / a) if a.startswith("OUT") else a for a in args]
+    assert main(args) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "too long" in line and LONG[:50] in line, line
+    assert sorted(os.listdir(tmp_path)) == []

@@ -11,6 +11,7 @@ Specs:
 from __future__ import annotations
 
 import inspect
+import os
 import re
 from pathlib import Path
 from typing import Callable
@@ -113,10 +114,10 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
             raise SourceError(f"spec {text!r} names no path after '{m.group(1)}:'")
     else:
         layout, path = None, Path(text).expanduser()
-    if not path.exists() and has_glob(path.name) and layout in (None, "folder"):
+    if not os.path.exists(path) and has_glob(path.name) and layout in (None, "folder"):
         kw.setdefault("pattern", path.name)
         path, layout = path.parent, "folder"
-    if not path.exists():
+    if not os.path.exists(path):  # False for any path the OS refuses (too long a name, a symlink loop, ...)
         raise SourceError(f"{path} {missing_reason(path) or 'does not exist'}")
     if layout is None:
         layout = detect_layout(path)
