@@ -40,6 +40,7 @@ from .config import ALIASES, SlamConfig
 from .errors import ConfigError, OutputError, SlamkitError
 from .eval import ate, rpe
 from .io import atomic_write_bytes, atomic_write_text
+from .io.run_dir import check_output, out_dir_lock
 from .io.run import _ground_truth as gt_of_run
 from .pipeline import Slam
 from .sources import open_source
@@ -270,20 +271,14 @@ def _is_dask_client(executor) -> bool:
 
 
 def check_sweep_args(out_dir: str | os.PathLike, workers: int | None, *, flag_out: str = "out_dir",
-                     flag_workers: str = "workers") -> Path:
-    """Refuse a negative worker count and a sweep folder that is a file or lies under one, before any run
-    (ConfigError / OutputError naming the option); creates nothing."""
+                     flag_workers: str = "workers", sources: Iterable = ()) -> Path:
+    """Refuse a negative worker count and a sweep folder that may not be written, before any run
+    (ConfigError / OutputError naming the option): a file, a folder of other files than a sweep, a run
+    folder or anything inside one, a source (:func:`slamkit.io.run_dir.check_output`)."""
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
         raise ConfigError(f"{flag_workers} {workers}: must be 0 (runs in this process) or a number of local "
                           "processes >= 1 (default: all cores)")
-    out = Path(out_dir)
-    if str(out_dir).strip() == "":
-        raise OutputError(f"{flag_out} '': an empty path; give the sweep folder")
-    if out.exists() and not out.is_dir():
-        raise OutputError(f"{flag_out} {out}: exists and is not a folder; give a folder for the sweep")
-    above = next((p for p in out.parents if p.exists()), None)
-    if above is not None and not above.is_dir():
-        raise OutputError(f"{flag_out} {out}: cannot be created, {above} is a file")
+    return check_output(out_dir, "sweep", sources, flag=flag_out)
     return out
 
 
@@ -305,8 +300,14 @@ def sweep(sources: Iterable[str] | str, grid: Grid | Sequence[str] | Mapping[str
         sources = [sources]
     if not isinstance(grid, Grid):
         grid = parse_grid(grid)
-    out_dir = check_sweep_args(out_dir, workers)
+    out_dir = check_sweep_args(out_dir, workers, sources=sources)
     tasks = plan(sources, grid, repeats)
+    with out_dir_lock(out_dir, flag="out_dir", what="sweep folder"):  # one sweep writes a folder at a time
+        return _sweep(out_dir, tasks, grid, repeats, executor, workers, retry_failed, on_result, write_outputs)
+
+
+def _sweep(out_dir: Path, tasks: list[Task], grid: Grid, repeats: int, executor, workers: int | None,
+           retry_failed: bool, on_result: Callable[[dict], None] | None, write_outputs: bool):
     try:
         (out_dir / "runs").mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -357,7 +358,8 @@ def _execute(todo: list[Task], executor, workers: int | None, finished: Callable
         pool = ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
         try:
             _collect(pool, todo, finished)
-        except BaseException:  # interrupted: do not wait for the running runs (finished ones are saved)
+        except BaseException:  # interrupted: stop the running runs now (finished ones are saved already)
+            _stop_workers(pool)
             pool.shutdown(wait=False, cancel_futures=True)
             raise
         pool.shutdown()
@@ -366,6 +368,20 @@ def _execute(todo: list[Task], executor, workers: int | None, finished: Callable
         raise ConfigError(f"executor {executor!r}: use 'local', 'serial', a dask Client or an Executor "
                           "(for a cluster address, slamkit.ablate.connect(ADDRESS))")
     _collect(executor, todo, finished)
+
+
+def _stop_workers(pool: ProcessPoolExecutor) -> None:
+    """Terminate the pool's processes (the runs in flight): a sweep stopped by a signal exits in seconds,
+    not after its longest run. Their results were not written, so the same command runs them again."""
+    terminate = getattr(pool, "terminate_workers", None)  # Python 3.14+
+    if terminate is not None:
+        terminate()
+        return
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        if proc.is_alive():
+            proc.terminate()
+    for proc in list((getattr(pool, "_processes", None) or {}).values()):
+        proc.join(timeout=5)
 
 
 def _collect(executor, todo: list[Task], finished: Callable[[Task, dict], None]) -> None:

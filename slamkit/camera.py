@@ -45,6 +45,13 @@ class Intrinsics:
             raise CalibrationError(f"intrinsics: image size {self.width}x{self.height} must be positive")
         if self.fx <= 0 or self.fy <= 0:
             raise CalibrationError(f"intrinsics: focal lengths must be positive (fx={self.fx}, fy={self.fy})")
+        lo, hi = focal_range(int(self.width), int(self.height))
+        for name, f in (("fx", self.fx), ("fy", self.fy)):
+            if not lo <= f <= hi:
+                raise CalibrationError(
+                    f"intrinsics: {name}={float(f):g} pixels is not a focal length of a {self.width}x{self.height} "
+                    f"camera (sane: {lo:.4g} to {hi:.4g} pixels, fields of view between {MIN_FOV_DEG:g} and "
+                    f"{MAX_FOV_DEG:g} degrees); check the calibration's units and image size")
         if not (0 < self.cx < self.width and 0 < self.cy < self.height):
             raise CalibrationError(
                 f"intrinsics: principal point ({self.cx}, {self.cy}) lies outside the "
@@ -138,10 +145,25 @@ class Intrinsics:
                    float(d["cy"]), tuple(float(x) for x in d.get("dist", (0, 0, 0, 0, 0))))
 
 
+MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
+"""The fields of view (degrees, across the larger image side) a focal length may give: beyond them a value is
+a typo or another unit (``--camera 1e12``, metres for pixels), and SLAM would only fail much later."""
+
+
+def focal_range(width: int, height: int) -> tuple[float, float]:
+    """(smallest, largest) sane focal length in pixels for ``width`` x ``height`` images (see
+    :data:`MIN_FOV_DEG`)."""
+    half = max(width, height) / 2.0
+    return half / math.tan(math.radians(MAX_FOV_DEG / 2)), half / math.tan(math.radians(MIN_FOV_DEG / 2))
+
+
 def parse_camera_values(text: str, where: str = "camera") -> list[float]:
     """The numbers of a camera text (see :meth:`Intrinsics.parse`): 1, 4, 8 or 9 finite floats, the focal
     lengths positive; :class:`~slamkit.errors.ConfigError` naming ``where`` otherwise."""
     fields = str(text).translate(str.maketrans(",()[]", "     ")).split()
+    if not fields:
+        raise ConfigError(f"{where}: {text!r} is empty; give F (focal length, pixels) or FX,FY,CX,CY[,distortion], "
+                          "or leave the option out to use the source's intrinsics")
     usage = (f"{where}: expected F (focal length, pixels), FX,FY,CX,CY, or FX,FY,CX,CY,K1,K2,P1,P2[,K3] "
              f"(OpenCV distortion), got {text!r}")
     if len(fields) not in (1, 4, 8, 9):

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
 import shlex
 import signal
 import sys
@@ -14,15 +16,18 @@ from pathlib import Path
 import pycolmap
 from tqdm import tqdm
 
-from .ablate import STATUS_OK, check_sweep_args, connect, markdown_table, parse_grid, plan, sweep
+from .ablate import STATUS_LOST, STATUS_OK, check_sweep_args, connect, markdown_table, parse_grid, plan, sweep
+from .camera import parse_camera_values
 from .config import PRESETS, SlamConfig
 from .errors import SlamkitError
 from .eval import evaluate
-from .eval.report import evaluate_run
+from .eval.report import check_posed, evaluate_run
 from .exporter import add_export_parser
+from .io.run_dir import check_output, out_dir_lock
 from .io.saved import check_run
 from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, notify, raise_interrupted
 from .io import write_tum
+from .io.trajectory import check_input_file
 from .pipeline import Slam
 from .runner import ABORTED, RunOutcome, run_to_folder, summary_line
 from .sources import open_source
@@ -62,6 +67,8 @@ def _overrides_from_args(args: argparse.Namespace) -> dict:
                                           "min_tracked_matches",
                                           "init_frames", "init_strategy", "camera", "frame_skip", "max_frames", "seed")
             if getattr(args, k) is not None}
+    if args.camera is not None:  # "" given explicitly is a mistake, not "the source's own"
+        parse_camera_values(args.camera, "--camera")
     for item in args.set:
         if "=" not in item:
             raise SlamkitError(f"--set {item!r}: expected KEY=VALUE")
@@ -151,6 +158,8 @@ def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
 
 def cmd_eval(args: argparse.Namespace) -> int:
     run = Path(args.run)
+    if args.gt is not None:
+        check_input_file(args.gt, "--gt")
     if not run.exists():
         raise SlamkitError(f"{run}: does not exist (give a run folder written by `slamkit run --out`, or a "
                            "trajectory file)")
@@ -164,17 +173,21 @@ def cmd_eval(args: argparse.Namespace) -> int:
         return 0
     if run.is_dir():
         check_run(run, ("trajectory_tum.txt", "groundtruth_tum.txt"))
+        check_posed(run)
     est = run / "trajectory_tum.txt" if run.is_dir() else run
-    gt = Path(args.gt) if args.gt else run / "groundtruth_tum.txt"
-    if not gt.exists():
-        raise SlamkitError(f"{gt}: no ground truth; pass --gt FILE")
+    if args.gt:
+        gt = check_input_file(args.gt, "--gt")
+    else:
+        gt = run / "groundtruth_tum.txt"
+        if not gt.exists():
+            raise SlamkitError(f"{gt}: no ground truth beside the trajectory; pass --gt FILE")
     result = evaluate(est, gt, max_dt=args.max_dt)
     print(json.dumps(result, indent=2))
     return 0
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
-    check_sweep_args(args.out, args.workers, flag_out="--out", flag_workers="--workers")
+    check_sweep_args(args.out, args.workers, flag_out="--out", flag_workers="--workers", sources=args.sources)
     items = list(args.grid)
     if args.features:
         items.append(f"features={args.features}")
@@ -187,9 +200,13 @@ def cmd_ablate(args: argparse.Namespace) -> int:
           f"repeat(s) = {len(tasks)} runs on {args.scheduler or (f'{args.workers} local processes' if args.workers else 'all cores' if args.workers is None else 'this process')} -> {args.out}",
           file=sys.stderr)
     bar = tqdm(total=len(tasks), unit="run", disable=args.quiet, dynamic_ncols=True)
+    counts = {"kept": 0, "new": 0}
 
     def progress(row: dict) -> None:
         bar.update(1)
+        if row["status"] != STATUS_LOST:  # a lost run (its worker died) is not written: it runs again
+            counts["kept"] += 1
+            counts["new"] += not row.get("cached", False)
         if row["status"] != STATUS_OK:
             tqdm.write(f"run {row.get('key')} {row['status']}: {row['error']}", file=sys.stderr)
 
@@ -197,8 +214,10 @@ def cmd_ablate(args: argparse.Namespace) -> int:
         df = sweep(args.sources, grid, args.out, executor, repeats=args.repeats, workers=args.workers,
                    retry_failed=args.retry_failed, on_result=progress)
     except KeyboardInterrupt as e:  # Ctrl-C, or SIGTERM / SIGHUP (Interrupted, exit code 143 / 129)
-        print(f"slamkit ablate: interrupted; finished runs are kept in {args.out}/runs/ — run the same command "
-              "again to finish the sweep", file=sys.stderr)
+        left = len(tasks) - counts["kept"]
+        print(f"slamkit ablate: {e or 'SIGINT'}: stopped; {counts['kept']} of {len(tasks)} runs are kept in "
+              f"{args.out}/runs/ ({counts['new']} finished by this command), the other {left} were stopped or "
+              "not started — run the same command again to finish the sweep", file=sys.stderr)
         return getattr(e, "exit_code", 130)
     finally:
         bar.close()
@@ -213,12 +232,19 @@ def cmd_ablate(args: argparse.Namespace) -> int:
 
 
 def cmd_gt(args: argparse.Namespace) -> int:
+    """Write the source's ground truth to OUT, under the rules of every output (check_output: never over an
+    existing file without --overwrite, never inside the source or a slamkit output), locked and atomic."""
+    check_output(args.out, "file", [args.source], args.overwrite, flag="OUT")  # before the source is read
+    if args.camera is not None:
+        parse_camera_values(args.camera, "--camera")
     src = open_source(args.source, camera=args.camera)
+    out = check_output(args.out, "file", [args.source, src], args.overwrite, flag="OUT")
     gt = src.ground_truth()
     if gt is None or len(gt) == 0:
         raise SlamkitError(f"{args.source}: this source has no ground truth")
-    write_tum(args.out, gt)
-    print(f"{len(gt)} poses written to {args.out}")
+    with out_dir_lock(out, flag="OUT", what="file"):
+        write_tum(out, gt)
+    print(f"{len(gt)} poses written to {out}")
     return 0
 
 
@@ -237,7 +263,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_ablate_parser(sub)
     g = sub.add_parser("gt", help="write a source's ground truth as a TUM file")
     g.add_argument("source")
-    g.add_argument("out")
+    g.add_argument("out", help="the TUM file to write (an existing file only with --overwrite; never inside the "
+                               "source or a run folder)")
+    g.add_argument("--overwrite", action="store_true", help="replace OUT when it exists")
     g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
                    help="intrinsics, applied before the source is opened (e.g. a TUM layout without a freiburg name)")
     g.set_defaults(func=cmd_gt)
@@ -304,9 +332,20 @@ def main(argv: list[str] | None = None) -> int:
         handler.active = False
         print(f"slamkit: error: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # `slamkit eval ... | head`: the reader left; not an error of ours
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    except OSError as e:  # the OS refused a path given on the command line (name too long, no permission, ...)
+        handler.active = False
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"slamkit: error: {where}{e.strerror or e} (the operating system refused it; check the path)",
+              file=sys.stderr)
+        return 2
     except Interrupted as e:  # SIGTERM / SIGHUP outside a run: a one-line exit, not a native stack dump
         handler.active = False
-        print(f"slamkit: {e}: stopped", file=sys.stderr)
+        print(f"slamkit: {e}: stopped; every output is either complete or as it was before (files and folders "
+              "are replaced atomically, a temporary one is removed)", file=sys.stderr)
         return e.exit_code
     finally:
         handler.active = False

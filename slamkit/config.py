@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import dataclasses
+import numbers
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+import numpy as np
+
 from .camera import parse_camera_values
-from .errors import ConfigError
+from .errors import ConfigError, check_type
 from .features import MatchingConfig, available_extractors, available_matchers
 from .features.learned import EXTRACTORS as LEARNED_EXTRACTORS, MATCHER_FEATURES, MATCHERS as LEARNED_MATCHERS
 from .features.learned import PIPELINES as LEARNED_PIPELINES, unavailable_reason
@@ -74,7 +77,11 @@ class SlamConfig:
     """Loop detection and correction (``--set loop_closing.enabled=false`` turns it off; the ``seed`` preset
     has it off, as the source paper)."""
 
+    def __post_init__(self) -> None:
+        _check_field_types(self, "SlamConfig")
+
     def validate(self) -> "SlamConfig":
+        _check_field_types(self, "SlamConfig")
         if self.features not in available_extractors():
             if self.features in FEATURE_PIPELINES:
                 raise ConfigError(f"features: {self.features!r} is a feature pipeline (extractor + matcher), not an "
@@ -88,8 +95,9 @@ class SlamConfig:
         if MATCHER_FEATURES.get(self.matcher, self.features) != self.features:
             raise ConfigError(f"matcher {self.matcher!r} matches only {MATCHER_FEATURES[self.matcher]!r} features, "
                               f"not {self.features!r} (use features={MATCHER_FEATURES[self.matcher]!r}, or matcher='nn')")
-        if self.num_features < 50:
-            raise ConfigError(f"num_features must be >= 50 (got {self.num_features})")
+        if not 50 <= self.num_features <= MAX_FEATURES:
+            raise ConfigError(f"num_features must be between 50 and {MAX_FEATURES} (got {self.num_features}; "
+                              "the extractors take a C int, and more keypoints than pixels are never found)")
         if self.frame_skip < 1:
             raise ConfigError(f"frame_skip must be >= 1 (got {self.frame_skip})")
         if self.max_frames is not None and self.max_frames < 1:
@@ -246,6 +254,34 @@ def feature_pipeline_status(weights_dir: str = "") -> dict[str, str | None]:
     torch and loads no weights. ``weights_dir`` as :attr:`SlamConfig.weights_dir`."""
     return {name: unavailable_reason(p["features"], p.get("matcher", "nn"), weights_dir or None)
             for name, p in FEATURE_PIPELINES.items()}
+
+
+MAX_FEATURES = 1_000_000
+"""The most keypoints per frame ``num_features`` may ask for (OpenCV takes a C int; a 1-megapixel image has
+fewer good corners than this)."""
+
+
+def _check_field_types(obj: Any, prefix: str) -> None:
+    """ArgumentTypeError naming ``prefix.field`` for a field whose value is not of its default's type (a
+    string for a number, a dict for a stage config, ...): the Python API's wrong types fail where they are
+    given, in one line, not deep inside a stage or OpenCV. Numbers may be numpy scalars; ints are floats."""
+    for f in fields(obj):
+        default = f.default if f.default is not dataclasses.MISSING else (
+            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        value, name = getattr(obj, f.name), f"{prefix}.{f.name}"
+        if dataclasses.is_dataclass(default):
+            check_type(value, type(default), name, "give a config object, or set its fields with "
+                       f"SlamConfig().with_overrides(**{{'{f.name}.FIELD': VALUE}})")
+            _check_field_types(value, name)
+        elif isinstance(default, bool):
+            check_type(value, (bool, np.bool_), name)
+        elif isinstance(default, int) or (default is None and "int" in str(f.type)):
+            if value is not None or default is not None:
+                check_type(value, (numbers.Integral,) if default is not None else (numbers.Integral, type(None)), name)
+        elif isinstance(default, float):
+            check_type(value, numbers.Real, name)
+        elif isinstance(default, str):
+            check_type(value, str, name)
 
 
 def _set(obj: Any, path: list[str], value: Any, key: str) -> Any:

@@ -19,7 +19,7 @@ import numpy as np
 
 from .camera import Intrinsics
 from .config import SlamConfig
-from .errors import CalibrationError, ImageReadError
+from .errors import CalibrationError, ImageReadError, check_type
 from .features import FrameFeatures, create_extractor, create_matcher
 from .frames import FrameLoader, thumbnail
 from .interrupt import deferred_interrupt
@@ -28,7 +28,7 @@ from .local_map import LocalMap
 from .map import SlamMap
 from .merging import MergeResult, merge_segments
 from .results import StepResult, TrackedMatches
-from .session import load_session, save_session
+from .session import load_session, save_session, unfinished_snapshot
 from .sources import open_source
 from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster
@@ -84,6 +84,11 @@ class Slam:
 
     def __init__(self, source: FrameSource | str, config: SlamConfig | str | None = None,
                  callbacks: list[Callback] | None = None):
+        if not isinstance(source, (str, Path)) and not all(hasattr(source, a) for a in ("camera", "__len__")):
+            check_type(source, (FrameSource, str, Path), "source", "give a spec ('default'), a path or a "
+                       "FrameSource (or an object with its camera, frames and timestamps)")
+        check_type(config, (SlamConfig, str, type(None)), "config",
+                   "give a SlamConfig (SlamConfig().with_overrides(...)), a preset name or None")
         if config is None:
             config = SlamConfig()
         elif isinstance(config, str):
@@ -128,6 +133,8 @@ class Slam:
         self.loader.configure(self.indices, extractor, self.camera, c.prefetch)
         self.state = SlamState()
         """Everything the run has done (records, segments, cursor, counters): what a session saves."""
+        self.unfinished_session: dict[str, bytes] | None = None
+        """The session files just before :meth:`finish` (what a finished run's session/ holds), or None."""
         self.last_frame: Frame | None = None
         self.last_features: FrameFeatures | None = None
         self.last_result: StepResult | None = None
@@ -462,6 +469,10 @@ class Slam:
         st = self.state
         if st.finished:
             return
+        try:
+            self.unfinished_session = unfinished_snapshot(self)  # saved as session/: --resume extends from here
+        except OSError:  # no room for the temporary copy: the finished state is saved, and not extended later
+            self.unfinished_session = None
         st.finished = True
         t = time.perf_counter()
         for seg in st.segments:
@@ -518,7 +529,11 @@ class Slam:
                 "config": self.config.to_dict()}
 
     def _why_not_initialized(self) -> str:
-        """Why no map exists yet (for the summary): the initializer's last reason."""
+        """Why no map exists yet (for the summary): featureless frames, or the initializer's last reason."""
+        featureless = sum(r.status == SKIPPED and not r.unreadable for r in self.state.records)
+        if self.state.records and featureless == len(self.state.records):
+            return (f"all {featureless} frames so far had fewer than 8 keypoints (featureless: black, blank or "
+                    "badly blurred images?)")
         if self.state.init_message:
             return f"no initial pair found; last attempt: {self.state.init_message}"
         if not self.state.records:

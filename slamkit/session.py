@@ -40,6 +40,7 @@ import contextlib
 import dataclasses
 import hashlib
 import json
+import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -54,7 +55,7 @@ from .errors import ConfigError, SessionError, SlamkitError  # noqa: F401 - Sess
 from .features import Features, FrameFeatures
 from .interrupt import deferred_interrupt  # noqa: F401 - re-exported: it lived here
 from .io.atomic import atomic_dir
-from .io.run_dir import SESSION_MARKER, write_manifest
+from .io.run_dir import SESSION_MARKER, check_output, out_dir_lock, write_manifest
 from .io.saved import check_session
 from .local_map import LocalMap
 from .loop_verification import ConsistentGroup
@@ -86,8 +87,8 @@ Every other scalar field is saved under its own name, so a new counter in the st
 # ----------------------------------------------------------------------------------------------- saving
 def save_session(slam: "Slam", out_dir: str | Path) -> Path:
     """Write ``slam``'s session to ``out_dir`` (replaced atomically); returns the folder."""
-    out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
+    out_dir = check_output(out_dir, "session", [getattr(slam, "source_spec", None), slam.source], flag="out_dir")
+    with out_dir_lock(out_dir, flag="out_dir", what="session folder"), atomic_dir(out_dir) as tmp:
         write_session(slam, tmp)
         write_manifest(tmp, SESSION_MARKER)  # sizes and checksums, checked before it is read
     return out_dir
@@ -95,9 +96,36 @@ def save_session(slam: "Slam", out_dir: str | Path) -> Path:
 
 def write_session(slam: "Slam", folder: str | Path) -> None:
     """Write the session files into ``folder`` (created if needed; not atomic by itself — :func:`save_session`
-    and :func:`slamkit.io.save_run` call it inside a temporary folder). ``session.json`` is written last."""
+    and :func:`slamkit.io.save_run` call it inside a temporary folder). ``session.json`` is written last.
+
+    A finished run (:meth:`Slam.finish`: final global BA, frames tracked again) is saved as it was just
+    before ``finish()`` (:func:`unfinished_snapshot`), marked ``"finished": true``: resumed with more frames
+    it continues exactly as an uninterrupted longer run; resumed as it is, ``finish()`` runs again on load.
+    """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    snapshot = getattr(slam, "unfinished_session", None) if slam.finished else None
+    if snapshot is not None:
+        for rel, data in snapshot.items():
+            if rel != SESSION_FILE:
+                (folder / rel).parent.mkdir(parents=True, exist_ok=True)
+                (folder / rel).write_bytes(data)
+        meta = json.loads(snapshot[SESSION_FILE])
+        (folder / SESSION_FILE).write_text(json.dumps({**meta, "finished": True}, indent=1))
+        return
+    _write_state_files(slam, folder)
+
+
+def unfinished_snapshot(slam: "Slam") -> dict[str, bytes]:
+    """The session files of ``slam`` as they are now (relative path -> bytes): taken by :meth:`Slam.finish`
+    before its final BA, written by :func:`write_session` in place of the finished state. Costs one session's
+    size in memory, nothing on disk (a run folder still holds one session)."""
+    with tempfile.TemporaryDirectory(prefix="slamkit-session-") as tmp:
+        _write_state_files(slam, Path(tmp))
+        return {p.relative_to(tmp).as_posix(): p.read_bytes() for p in sorted(Path(tmp).rglob("*")) if p.is_file()}
+
+
+def _write_state_files(slam: "Slam", folder: Path) -> None:
     arrays: dict[str, np.ndarray] = {}
     meta: dict[str, Any] = {
         "format": FORMAT, "version": VERSION, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -222,7 +250,10 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     if meta.get("format") != FORMAT or meta.get("version") != VERSION:
         raise SessionError(f"{folder / SESSION_FILE}: not a slamkit session of version {VERSION} "
                            f"(format {meta.get('format')!r}, version {meta.get('version')!r})")
-    saved_config = SlamConfig.from_dict(meta["config"])
+    try:
+        saved_config = SlamConfig.from_dict(meta["config"])
+    except (KeyError, TypeError, AttributeError) as e:  # ConfigError (a bad value) names the value itself
+        raise _unreadable(folder, e) from None
     cfg = _resolve_config(saved_config, config, folder)
     if source is None:
         source = meta["source"].get("spec")
@@ -233,15 +264,34 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     _check_source(meta["source"], slam.source, folder)
     if meta["source"].get("spec") and getattr(slam, "source_spec", None) is None:
         slam.source_spec = meta["source"]["spec"]
-    cursor = int(meta["state"]["_cursor"])
+    try:
+        cursor = int(meta["state"]["_cursor"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise _unreadable(folder, e) from None
     if cursor > len(slam.indices):
         raise ConfigError(f"{folder}: the session processed {cursor} frames but this configuration selects "
                           f"{len(slam.indices)} (max_frames={cfg.max_frames}); raise max_frames")
     with _npz(folder / "state.npz") as arrays:
-        _restore(slam, meta, arrays, folder)
+        try:
+            _restore(slam, meta, arrays, folder)
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:  # edited by hand, or older
+            raise _unreadable(folder, e) from None
     if not slam.done:
-        slam.finished = False  # more frames to come (max_frames raised): finish() runs again at the end
+        if slam.finished:  # saved after finish() without the state before it (sessions of older versions)
+            raise SessionError(
+                f"{folder}: this run was saved after its final bundle adjustment without the state before it, "
+                f"so it cannot be extended to {len(slam.indices)} frames as a longer run would be; run it again "
+                f"over all frames instead (slamkit run SOURCE --max-frames {len(slam.indices)} --out NEW_FOLDER)")
+        slam.finished = False  # more frames to come (max_frames raised): finish() runs at the end
+    elif meta.get("finished") and not slam.finished:
+        slam.finish()  # the saved run was finished: the same final BA and re-tracking again
     return slam
+
+
+def _unreadable(folder: Path, e: BaseException) -> SessionError:
+    what = f"entry {e.args[0]!r} is missing" if isinstance(e, KeyError) else f"{type(e).__name__}: {e}"
+    return SessionError(f"{folder / SESSION_FILE}: not a session this slamkit can read ({what}); it was edited "
+                        "or written by another version — start a new run (slamkit run SOURCE --out NEW_FOLDER)")
 
 
 def _resolve_config(saved: SlamConfig, config, folder: Path) -> SlamConfig:

@@ -199,6 +199,32 @@ def test_resume_with_two_map_segments(tmp_path):
         assert ate(src.source.ground_truth(), resumed.trajectory(segment=seg.id)).rmse < 0.02
 
 
+def test_a_finished_run_extended_with_resume_equals_the_longer_run(tmp_path, uninterrupted):
+    """Issue 28: a *finished* 40-frame run (final global BA, frames re-tracked) saved, then resumed to 60
+    frames, gives the uninterrupted 60-frame run bit for bit: the session holds the state before finish()."""
+    full = uninterrupted[0]
+    short = Slam(SPEC, CONFIG.with_overrides(max_frames=40))
+    short.run()
+    assert short.finished
+    short.save(tmp_path / "run40")
+    meta = json.loads((tmp_path / "run40" / "session" / "session.json").read_text())
+    assert meta["finished"] is True and meta["state"]["finished"] is False
+    as_saved = Slam.resume(tmp_path / "run40")  # the same frames: finished again on load, as it was saved
+    assert as_saved.finished
+    np.testing.assert_array_equal(as_saved.trajectory().poses, short.trajectory().poses)
+    longer = Slam.resume(tmp_path / "run40", config={"max_frames": 60})
+    assert not longer.finished and longer._cursor == 40
+    longer.run()
+    np.testing.assert_array_equal(longer.trajectory().timestamps, full.trajectory().timestamps)
+    np.testing.assert_array_equal(longer.trajectory().poses, full.trajectory().poses)
+    # a session of the finished state only (as older versions saved it) is refused in one line, not degraded
+    short.unfinished_session = None
+    short.save(tmp_path / "old40")
+    with pytest.raises(SessionError, match=r"saved after its final bundle adjustment.*--max-frames 60") as e:
+        Slam.resume(tmp_path / "old40", config={"max_frames": 60})
+    assert "\n" not in str(e.value)
+
+
 @pytest.fixture(scope="module")
 def early_session(tmp_path_factory):
     """A session saved after 12 frames (still initializing) of a run limited to 12 frames."""

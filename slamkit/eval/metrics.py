@@ -19,13 +19,14 @@ Statistics are evo's: rmse, mean, median, std (population), min, max, sse.
 
 from __future__ import annotations
 
+import numbers
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import AssociationError, ConfigError
+from ..errors import AssociationError, ConfigError, check_type
 from ..geometry import invert_pose, rotation_angle_deg
 from ..io.trajectory import read_trajectory
 from ..types import Trajectory
@@ -195,6 +196,11 @@ def _time_coverage(t: np.ndarray, span: tuple[float, float]) -> float:
 
 
 def _match_and_align(gt: Trajectory, est: Trajectory, align: str, max_dt: float, offset: float) -> _Matched:
+    for name, t in (("gt", gt), ("est", est)):
+        check_type(t, Trajectory, name, "read a file with slamkit.read_trajectory(path), or use "
+                                        "slamkit.evaluate(est_path, gt_path)")
+    check_type(max_dt, numbers.Real, "max_dt")
+    check_type(offset, numbers.Real, "offset")
     if not max_dt >= 0:
         raise ConfigError(f"max_dt: must be >= 0 seconds, got {max_dt}")
     idx_gt, idx_est = associate(gt.timestamps, est.timestamps, max_dt, offset)
@@ -301,9 +307,10 @@ def rpe(gt: Trajectory, est: Trajectory, delta: float = 1, unit: str = "frames",
     return _rpe(_match_and_align(gt, est, align, max_dt, offset), delta, unit, all_pairs)
 
 
-def _load(x: Trajectory | str | os.PathLike) -> tuple[Trajectory, str | None]:
+def _load(x: Trajectory | str | os.PathLike, name: str) -> tuple[Trajectory, str | None]:
     if isinstance(x, Trajectory):
         return x, None
+    check_type(x, (str, os.PathLike), name, "give a Trajectory or the path of a TUM or KITTI file")
     return read_trajectory(x), str(Path(x))
 
 
@@ -315,8 +322,8 @@ def evaluate(est: Trajectory | str | os.PathLike, gt: Trajectory | str | os.Path
     ``ate`` (stats in metres), ``rpe`` (``translation`` metres, ``rotation_deg``), ``matched``,
     ``estimate_poses``, ``ground_truth_poses``, the matched fractions, ``alignment`` and the settings.
     """
-    est_traj, est_path = _load(est)
-    gt_traj, gt_path = _load(gt)
+    est_traj, est_path = _load(est, "est")
+    gt_traj, gt_path = _load(gt, "gt")
     m = _match_and_align(gt_traj, est_traj, align, max_dt, offset)
     a = _ate(m)
     r = _rpe(m, rpe_delta, rpe_unit, False)

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..errors import SessionError, SlamkitError
 from ..io import atomic_write_text, read_trajectory
+from ..io.trajectory import check_input_file
 from ..io.saved import check_json, check_run
 from ..types import Trajectory
 from .metrics import ate, rpe
@@ -98,10 +99,24 @@ def _run_inputs(run: Path, gt: str | os.PathLike | None) -> tuple[Path, Path]:
     traj_path = run / "trajectory_tum.txt"
     if not traj_path.exists():
         raise SlamkitError(f"{traj_path}: missing; is {run} a slamkit run folder?")
-    gt_path = Path(gt) if gt is not None else run / "groundtruth_tum.txt"
+    check_posed(run)
+    if gt is not None:
+        return traj_path, check_input_file(gt, "gt (--gt)")
+    gt_path = run / "groundtruth_tum.txt"
     if not gt_path.exists():
-        raise SlamkitError(f"{gt_path}: no ground truth; pass gt=FILE (--gt FILE)")
+        raise SlamkitError(f"{gt_path}: no ground truth in the run (its source has none); pass gt=FILE (--gt FILE)")
     return traj_path, gt_path
+
+
+def check_posed(run: Path) -> None:
+    """SlamkitError when run folder ``run`` posed no frame (nothing to evaluate), with the run's reason."""
+    try:
+        summary = _summary(run)
+    except SlamkitError:
+        return  # the trajectory's own check names the problem
+    if summary.get("frames_posed") == 0:
+        why = summary.get("not_initialized_reason") or "see its summary.json"
+        raise SlamkitError(f"{run}: the run posed no frame, so there is nothing to evaluate (no map: {why})")
 
 
 def _summary(run: Path) -> dict:

@@ -12,6 +12,7 @@ from ..config import SlamConfig
 from ..errors import ConfigError, OutputError, SlamkitError
 from ..features import create_extractor
 from ..io.atomic import atomic_dir
+from ..io.run_dir import EXPORT_MARKER, check_output, out_dir_lock
 from ..sources.base import FrameSource
 from .camera import ExportCamera
 from .images import ProgressCallback, file_name, read_gray, reopen_source, write_image
@@ -20,7 +21,7 @@ from .nerfstudio import PLY_NAME, write_ply, write_transforms
 from .runfolder import PosedFrame, SavedRun, load_run
 
 FORMATS = ("colmap", "nerfstudio")
-MARKER = ".slamkit-export"
+MARKER = EXPORT_MARKER
 """File marking a folder written by :func:`export` (an existing folder without it is never replaced)."""
 
 
@@ -38,12 +39,13 @@ class ExportResult:
     mean_reprojection_error: float
 
 
-def _check_out(out: Path, run_dir: Path) -> None:
+def _check_out(out: Path, run_dir: Path, source) -> None:
+    """The export folder may be written (:func:`slamkit.io.run_dir.check_output`): never the run folder or
+    one holding it, nothing inside a run or the source, an existing folder only when it is an export."""
     out_r, run_r = out.resolve(), run_dir.resolve()
     if out_r == run_r or out_r in run_r.parents:
         raise OutputError(f"{out}: the export folder would replace the run folder {run_dir}")
-    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
-        raise OutputError(f"{out}: exists and is not empty (and not a slamkit export); choose another --out")
+    check_output(out, "export", [source], flag="out")
 
 
 def _extractor(config: SlamConfig):
@@ -101,10 +103,17 @@ def export(run_dir: str | Path, out: str | Path, format: str = "colmap", frames:
     if format not in FORMATS:
         raise ConfigError(f"format must be one of {', '.join(FORMATS)} (got {format!r})")
     out, run_dir = Path(out), Path(run_dir)
+    _check_out(out, run_dir, None)  # before anything is read; again below with the source's paths
+    with out_dir_lock(out, flag="out", what="export folder"):  # one writer at a time, from the first check on
+        return _export(run_dir, out, format, frames, undistort, progress, source)
+
+
+def _export(run_dir: Path, out: Path, format: str, frames: str, undistort: bool | None,
+            progress: ProgressCallback | None, source: FrameSource | str | None) -> ExportResult:
     run = load_run(run_dir, source.camera if isinstance(source, FrameSource) else None)
     selected = select_frames(run.frames, frames)
-    _check_out(out, run_dir)
     src = reopen_source(run, source)
+    _check_out(out, run_dir, src)
     camera = ExportCamera.create(run.camera, bool(undistort))
     names = {f.index: file_name(run, src, f, camera) for f in selected}
     with atomic_dir(out, overwrite=(out / MARKER).is_file()) as tmp:  # _check_out allowed it

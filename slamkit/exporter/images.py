@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from ..errors import OutputError, SlamkitError
+from ..io.run_dir import source_paths
 from ..sources import open_source
 from ..sources.base import FrameSource, ImageListSource
 from ..types import Frame
@@ -46,6 +47,13 @@ def source_position(run: SavedRun, source: FrameSource, frame: PosedFrame) -> in
     """The index in ``source`` of a posed frame; SlamkitError when its dataset frame id disagrees."""
     i = frame.index * int(run.config.frame_skip)
     if not 0 <= i < len(source) or int(source.frame_ids[i]) != frame.frame_id:
+        if run.source_frames is not None and run.source_frames != len(source):
+            where = next(iter(source_paths(source)), None)
+            raise SlamkitError(f"{run.path}: its source {getattr(source, 'name', '?')!r}"
+                               f"{f' ({where})' if where else ''} has {len(source)} frames now but had "
+                               f"{run.source_frames} when the run was made: images were deleted, added or moved "
+                               f"since (dataset frame {frame.frame_id} is not where it was); restore them, or "
+                               "pass the source the run used (source=)")
         raise SlamkitError(f"{run.path}: frame {frame.index} (dataset frame {frame.frame_id}) is not frame {i} of "
                            f"the source {getattr(source, 'name', '?')!r}: is it the source the run was made on?")
     return i

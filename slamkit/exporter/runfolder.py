@@ -78,6 +78,8 @@ class SavedRun:
     camera: Intrinsics
     spec: str | None
     config: SlamConfig
+    source_frames: int | None = None
+    """How many frames the source had when the run was made (from the session; None without one)."""
 
 
 def _require(path: Path, what: str) -> Path:
@@ -166,4 +168,6 @@ def load_run(run_dir: str | Path, source_camera: Intrinsics | None = None) -> Sa
     frames = _posed_frames(run_dir, model, main)
     config = SlamConfig.from_dict(meta["config"]) if meta is not None and "config" in meta else SlamConfig()
     spec = meta.get("source", {}).get("spec") if meta is not None else None
-    return SavedRun(run_dir, model, frames, _camera(meta, model, source_camera), spec, config)
+    recorded = meta.get("source", {}).get("frames") if meta is not None else None
+    return SavedRun(run_dir, model, frames, _camera(meta, model, source_camera), spec, config,
+                    int(recorded) if isinstance(recorded, int) else None)

@@ -13,6 +13,7 @@ target), so there is an instant in which the target does not exist, but never on
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import stat
@@ -82,10 +83,14 @@ def _atomic_write(path: str | os.PathLike, chunks: Iterable[bytes]) -> Path:
         os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException as e:
+        written = _tree_size(tmp)
+        existed = path.exists()
         with contextlib.suppress(OSError):
             tmp.unlink()
         if isinstance(e, OSError):
-            raise OutputError(f"{path}: cannot be written ({e.strerror or e})") from e
+            err = OutputError(write_failure(path, e, written, existed, "file"))
+            err.os_error = e  # for an enclosing atomic_dir, which words it for the whole folder
+            raise err from None
         raise
     _fsync_dir(parent)
     return path
@@ -135,6 +140,7 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp"))
     except OSError as e:
         raise OutputError(f"{parent}: output folder is not writable ({e.strerror or e})") from e
+    existed = path.exists()
     try:
         yield tmp
         # mkdtemp creates 0o700; give the result the usual folder permissions
@@ -142,12 +148,46 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         os.umask(mask)
         os.chmod(tmp, 0o777 & ~mask)
         backup = _commit(tmp, path, parent)
+    except (OSError, OutputError) as e:  # e.g. a full disk while the block wrote: one line, old folder untouched
+        written = _tree_size(tmp)
+        _remove_tree(tmp)
+        cause = e if isinstance(e, OSError) else getattr(e, "os_error", None)
+        if cause is not None:
+            raise OutputError(write_failure(path, cause, written, existed, "folder")) from None
+        raise OutputError(str(e).replace(str(tmp), str(path))) from None  # never the temporary folder's name
     except BaseException:
         _remove_tree(tmp)
         raise
     if backup is not None:
         _remove_tree(backup)
     _fsync_dir(parent)
+
+
+def _tree_size(p: Path) -> int:
+    """Bytes in file or folder ``p`` (0 when it is gone)."""
+    if p.is_file():
+        return p.stat().st_size
+    total = 0
+    for root, _, files in os.walk(p):
+        for f in files:
+            with contextlib.suppress(OSError):
+                total += os.lstat(os.path.join(root, f)).st_size
+    return total
+
+
+def write_failure(path: Path, error: OSError, written: int, existed: bool, what: str) -> str:
+    """One line for an OSError while writing ``path`` atomically: for a full disk, where, how much was
+    written and is free, and that the previous ``path`` is intact (the write never replaced it)."""
+    kept = (f"the previous {what} {path} is intact" if existed else f"nothing was written to {path}")
+    if error.errno in (errno.ENOSPC, errno.EDQUOT):
+        try:
+            free = shutil.disk_usage(path.parent).free
+        except OSError:
+            free = 0
+        return (f"no space left on the disk of {path.parent}: {written / 1e6:.1f} MB written when it ran out, "
+                f"{free / 1e6:.1f} MB free in all: more is needed; {kept} — free some space (or choose another "
+                "disk) and run the same command again")
+    return f"{path}: cannot be written ({error.strerror or error}); {kept}"
 
 
 def _remove_tree(folder: Path) -> None:

@@ -31,8 +31,9 @@ from pathlib import Path
 
 from ..errors import OutputError
 
-__all__ = ["RUN_MARKER", "SESSION_MARKER", "check_out_dir", "is_replaceable", "out_dir_lock", "read_manifest",
-           "remove_stale_temporaries", "source_paths", "write_manifest"]
+__all__ = ["EXPORT_MARKER", "OUTPUT_KINDS", "RUN_MARKER", "SESSION_MARKER", "check_out_dir", "check_output",
+           "is_replaceable", "out_dir_lock", "read_manifest", "remove_stale_temporaries", "source_paths",
+           "write_manifest"]
 
 RUN_MARKER = ".slamkit-run"
 SESSION_MARKER = ".slamkit-session.json"
@@ -169,45 +170,132 @@ def _overlap(out: Path, src: Path) -> str | None:
     return None
 
 
-def check_out_dir(out: str | os.PathLike, sources: Iterable = (), overwrite: bool = False,
-                  flag: str = "--out") -> Path:
-    """Check that the run folder ``out`` may be written, before any work (OutputError naming it otherwise).
+OUTPUT_KINDS = {"run": "slamkit run", "session": "slamkit session", "export": "slamkit export",
+                "sweep": "slamkit sweep", "file": "file"}
+"""What each command writes: a run folder (``run``, ``save``, the notebook's Save), a session folder
+(``Slam.save_session``), an export folder, a sweep folder (``ablate``) or a single file (``gt``).
+:func:`check_output` knows each kind's own outputs."""
 
-    Fine: a missing or empty folder, or a slamkit run folder (replaced atomically when the run is saved).
-    Refused: an empty path; a file; the current folder or one that holds it; a folder equal to, inside or
-    holding a source's file or folder (symlinks resolved) — these even with ``overwrite``; a non-empty
-    folder of other files unless ``overwrite``. The parent folder is created and a test file written in it,
-    so an unwritable place fails now. ``sources``: specs, paths or opened sources (:func:`source_paths`).
+EXPORT_MARKER = ".slamkit-export"
+"""File marking a folder written by :func:`slamkit.exporter.export`."""
+SWEEP_FILE = "sweep.json"
+SWEEP_ENTRIES = re.compile(r"^(sweep\.json|runs|results\.(csv|parquet|md)|effects\.png|\..*\.tmp)$")
+
+_OWN_MARKERS = (RUN_MARKER, SESSION_MARKER, EXPORT_MARKER)
+
+
+def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = (), overwrite: bool = False,
+                 flag: str = "--out") -> Path:
+    """The one check every command that writes goes through, before any work (OutputError naming ``flag``
+    and the path otherwise). ``kind``: one of :data:`OUTPUT_KINDS`.
+
+    Always refused, even with ``overwrite``: an empty path; a path component longer than the file system
+    allows; a file system root, the current folder or one holding it (folders); a path equal to, inside or
+    holding a source's file or folder (symlinks resolved); a path inside a slamkit run, session or export
+    folder (their files are listed in a manifest: writing among them breaks the run) — except a run's own
+    ``session/`` being written as part of it; a folder where a file is expected and the reverse.
+    Refused without ``overwrite``: an existing file (kind ``file``); a non-empty folder that is not of
+    ``kind`` (a run folder for ``run``, an export for ``export``, a sweep for ``sweep``). The parent folder
+    is created and a test file written in it, so an unwritable place fails now.
+    ``sources``: specs, paths or opened sources (:func:`source_paths`).
     """
+    what = OUTPUT_KINDS[kind]
+    noun = "file" if kind == "file" else f"{what} folder"
+    if not isinstance(out, (str, os.PathLike)):
+        raise TypeError(f"{flag}: expected a path (str or os.PathLike), got {type(out).__name__}")
     if str(out).strip() == "":
-        raise OutputError(f"{flag} '': an empty path; give the folder to write the run to")
+        raise OutputError(f"{flag} '': an empty path; give the {noun} to write")
     out = Path(out).expanduser()
+    _check_name_lengths(out, flag)
     real = _resolved(out)
     if real.parent == real:
-        raise OutputError(f"{flag} {out}: a file system root cannot be a run folder")
+        raise OutputError(f"{flag} {out}: a file system root cannot be a {noun}")
     cwd = _resolved(Path.cwd())
-    if real == cwd or real in cwd.parents:
+    if kind != "file" and (real == cwd or real in cwd.parents):
         raise OutputError(f"{flag} {out}: is the current folder{'' if real == cwd else ' or holds it'}; "
-                          "a run folder is replaced as a whole — give a new folder, e.g. runs/NAME")
+                          f"give a new folder, e.g. runs/NAME")
     for src in source_paths_all(sources):
         why = _overlap(out, src)
         if why:
-            raise OutputError(f"{flag} {out}: {why} ({src}); the run folder is replaced as a whole, so it must "
-                              "be outside the input — give another folder")
-    if out.exists() or out.is_symlink():
-        if not out.is_dir():
-            raise OutputError(f"{flag} {out}: exists and is not a folder; give a folder for the run")
-        try:
-            foreign = foreign_entries(out)
-        except OSError as e:
-            raise OutputError(f"{flag} {out}: cannot be listed ({e.strerror or e})") from e
-        if foreign and not overwrite:
-            shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-            raise OutputError(f"{flag} {out}: folder is not empty and is not a slamkit run ({shown}); nothing "
-                              "was written — choose another folder, or pass --overwrite (overwrite=True) to "
-                              "replace it and everything in it")
+            raise OutputError(f"{flag} {out}: {why} ({src}); slamkit never writes into its input — give a "
+                              f"{noun} outside it")
+    owner = _inside_output(real)
+    if owner is not None:
+        raise OutputError(f"{flag} {out}: is inside {owner}, a slamkit output whose files are listed in its "
+                          f"manifest (writing there breaks it); give a {noun} outside it")
+    try:
+        exists = out.exists() or out.is_symlink()
+    except OSError as e:
+        raise OutputError(f"{flag} {out}: cannot be used ({e.strerror or e})") from e
+    if exists:
+        if kind == "file":
+            if out.is_dir():
+                raise OutputError(f"{flag} {out}: is a folder; give a file name")
+            if not overwrite:
+                raise OutputError(f"{flag} {out}: exists; nothing was written — choose another file name, or "
+                                  "pass --overwrite to replace it")
+        elif not out.is_dir():
+            raise OutputError(f"{flag} {out}: exists and is not a folder; give a folder for the {what}")
+        else:
+            try:
+                foreign = _foreign(out, kind)
+            except OSError as e:
+                raise OutputError(f"{flag} {out}: cannot be listed ({e.strerror or e})") from e
+            if foreign and not overwrite:
+                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
+                again = (" to replace it and everything in it" if kind != "sweep" else
+                         " to write the sweep's files among them")
+                raise OutputError(f"{flag} {out}: folder is not empty and is not a {what} ({shown}); nothing was "
+                                  f"written — choose another folder, or pass --overwrite (overwrite=True){again}")
+    above = next((p for p in out.parents if p.exists()), None)
+    if above is not None and not above.is_dir():
+        raise OutputError(f"{flag} {out}: cannot be created, {above} is a file")
     _check_writable(out.parent, f"{flag} {out}")
     return out
+
+
+def check_out_dir(out: str | os.PathLike, sources: Iterable = (), overwrite: bool = False,
+                  flag: str = "--out") -> Path:
+    """:func:`check_output` for a run folder (``run``, ``Slam.save``, ``save_run``)."""
+    return check_output(out, "run", sources, overwrite, flag)
+
+
+def _foreign(out: Path, kind: str) -> list[str]:
+    """Names in folder ``out`` that are not a ``kind`` output's."""
+    names = sorted(os.listdir(out))
+    if kind == "run":
+        return foreign_entries(out)
+    if kind == "session":
+        own = (out / SESSION_MARKER).is_file() or _is_session_dir(out)
+        return [n for n in names if not (own and SESSION_ENTRY.match(n))]
+    if kind == "export":
+        return [] if (out / EXPORT_MARKER).is_file() else names
+    if (out / SWEEP_FILE).is_file():  # a sweep: its own entries (and the user's notes beside them) are fine
+        return []
+    return [n for n in names if not SWEEP_ENTRIES.match(n)]
+
+
+def _inside_output(real: Path) -> Path | None:
+    """The slamkit run, session or export folder that holds ``real`` (resolved), or None."""
+    for p in real.parents:
+        try:
+            if any((p / m).is_file() for m in _OWN_MARKERS):
+                return p
+        except OSError:
+            return None
+    return None
+
+
+def _check_name_lengths(out: Path, flag: str) -> None:
+    """OutputError for a path component the file system refuses for its length (``File name too long``)."""
+    try:
+        limit = os.pathconf(next((p for p in [out, *out.parents] if p.exists()), Path(".")), "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        limit = 255
+    for part in out.parts:
+        if len(os.fsencode(part)) > limit:
+            raise OutputError(f"{flag} {out}: the name {part[:20]}... has {len(os.fsencode(part))} bytes, more "
+                              f"than the file system allows ({limit}); give a shorter name")
 
 
 def source_paths_all(sources) -> list[Path]:
@@ -243,7 +331,7 @@ def _lock_path(out: Path) -> Path:
 
 
 @contextlib.contextmanager
-def out_dir_lock(out: str | os.PathLike, flag: str = "--out") -> Iterator[Path]:
+def out_dir_lock(out: str | os.PathLike, flag: str = "--out", what: str = "run folder") -> Iterator[Path]:
     """Hold an exclusive lock on run folder ``out`` (``PARENT/.NAME.lock``, ``flock``) for the block.
 
     A second holder, in this process or another, gets OutputError at once naming the folder and the pid
@@ -270,8 +358,8 @@ def out_dir_lock(out: str | os.PathLike, flag: str = "--out") -> Iterator[Path]:
             if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise OutputError(f"{flag} {out}: cannot lock {path} ({e.strerror or e})") from e
             who = f"process {other}" if other else "another process"
-            raise OutputError(f"{flag} {out}: {who} is writing this run folder (lock {path}); wait for it to "
-                              "finish or choose another folder") from None
+            raise OutputError(f"{flag} {out}: {who} is writing this {what} (lock {path}); wait for it to "
+                              f"finish or choose another {'file' if what == 'file' else 'folder'}") from None
         try:  # the file may have been removed by the previous holder between our open and flock: retry
             same = os.fstat(fd).st_ino == os.stat(path).st_ino
         except FileNotFoundError:
@@ -280,8 +368,9 @@ def out_dir_lock(out: str | os.PathLike, flag: str = "--out") -> Iterator[Path]:
             break
         os.close(fd)
     try:
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        with contextlib.suppress(OSError):  # the pid is a courtesy for the message; a full disk must not stop us
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
         yield path
     finally:
         with contextlib.suppress(OSError):

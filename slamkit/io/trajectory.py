@@ -18,12 +18,14 @@ agree to ~1e-16). Writes are atomic (:mod:`slamkit.io.atomic`).
 from __future__ import annotations
 
 import os
+import select
+import stat
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, FormatError, OutputError
+from ..errors import ConfigError, FormatError, OutputError, missing_reason
 from ..geometry import pose_from_rows, pose_from_tum, tum_from_pose
 from ..types import Trajectory
 from .atomic import atomic_write_text
@@ -39,9 +41,59 @@ ROTATION_TOL = 1e-3
 
 # ---------------------------------------------------------------------------------------------- parsing
 
+PIPE_TIMEOUT = 10.0
+"""seconds: how long a pipe or FIFO (``--gt <(cat gt.txt)``, ``/dev/stdin``) may stay silent before the read
+gives up with an error instead of blocking forever (a FIFO nobody writes to)."""
+
+
+def _read_bytes(path: Path) -> bytes:
+    """The file's bytes, read once (so a pipe works). A FIFO or pipe is read without ever blocking longer
+    than :data:`PIPE_TIMEOUT` seconds of silence; a regular file is read as usual."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise FormatError(path, None, "no such file") from None
+    except OSError as e:
+        raise FormatError(path, None, f"cannot be read ({e.strerror or e})") from e
+    if stat.S_ISDIR(st.st_mode):
+        raise FormatError(path, None, "is a folder, not a trajectory file")
+    if not stat.S_ISFIFO(st.st_mode):
+        return path.read_bytes()
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    chunks: list[bytes] = []
+    try:
+        while True:
+            ready, _, _ = select.select([fd], [], [], PIPE_TIMEOUT)
+            if not ready:
+                raise FormatError(path, None, f"a pipe that sent nothing for {PIPE_TIMEOUT:g} s (no writer?); "
+                                              "give a file, or a pipe that is being written")
+            try:
+                chunk = os.read(fd, 1 << 16)
+            except BlockingIOError:
+                continue
+            if not chunk:
+                return b"".join(chunks)
+            chunks.append(chunk)
+    finally:
+        os.close(fd)
+
+
+def check_input_file(path: str | os.PathLike, flag: str) -> Path:
+    """``path`` as a Path when it names something readable (a file or a pipe); else FormatError saying
+    what is wrong with it and naming ``flag``: missing, a broken symlink, a symlink loop, a folder."""
+    path = Path(path)
+    why = missing_reason(path)
+    if why:
+        raise FormatError(path, None, f"{why} (given as {flag})")
+    st = os.stat(path)
+    if stat.S_ISDIR(st.st_mode):
+        raise FormatError(path, None, f"is a folder, not a file (given as {flag})")
+    return path
+
+
 def _read_lines(path: Path) -> list[bytes]:
     try:
-        data = path.read_bytes()
+        data = _read_bytes(path)
     except FileNotFoundError:
         raise FormatError(path, None, "no such file") from None
     except IsADirectoryError:
@@ -53,9 +105,10 @@ def _read_lines(path: Path) -> list[bytes]:
     return data.split(b"\n")
 
 
-def _data_rows(path: Path) -> Iterator[tuple[int, list[str]]]:
-    """Yield ``(line_number, tokens)`` of every non-blank, non-comment line (1-based line numbers)."""
-    for lineno, raw in enumerate(_read_lines(path), start=1):
+def _data_rows(path: Path, lines: list[bytes] | None = None) -> Iterator[tuple[int, list[str]]]:
+    """Yield ``(line_number, tokens)`` of every non-blank, non-comment line (1-based line numbers) of the
+    file, or of its ``lines`` when they were read already."""
+    for lineno, raw in enumerate(_read_lines(path) if lines is None else lines, start=1):
         try:
             line = raw.decode("utf-8")
         except UnicodeDecodeError:
@@ -80,10 +133,10 @@ def _parse_numbers(path: Path, lineno: int, tokens: list[str], n: int, layout: s
     return values
 
 
-def _read_table(path: Path, n: int, layout: str) -> tuple[np.ndarray, list[int]]:
+def _read_table(path: Path, n: int, layout: str, text: list[bytes] | None = None) -> tuple[np.ndarray, list[int]]:
     """All data lines as an (N, n) float64 array plus their line numbers."""
     rows, lines = [], []
-    for lineno, tokens in _data_rows(path):
+    for lineno, tokens in _data_rows(path, text):
         rows.append(_parse_numbers(path, lineno, tokens, n, layout))
         lines.append(lineno)
     return np.array(rows, dtype=np.float64).reshape(-1, n), lines
@@ -100,13 +153,13 @@ def _check_increasing(path: Path, timestamps: np.ndarray, lines: Sequence[int]) 
 
 # ---------------------------------------------------------------------------------------------- TUM
 
-def read_tum(path: str | os.PathLike) -> Trajectory:
+def read_tum(path: str | os.PathLike, _text: list[bytes] | None = None) -> Trajectory:
     """Read a TUM trajectory file -> Trajectory (camera-to-world poses, quaternions normalised).
 
     A file without data lines gives an empty Trajectory. FormatError names the file and line at fault.
     """
     path = Path(path)
-    table, lines = _read_table(path, 8, "timestamp tx ty tz qx qy qz qw")
+    table, lines = _read_table(path, 8, "timestamp tx ty tz qx qy qz qw", _text)
     q = table[:, 4:8]
     norms = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(~(np.abs(norms - 1.0) <= QUATERNION_NORM_TOL))
@@ -165,7 +218,8 @@ def _read_times(path: Path) -> tuple[np.ndarray, list[int]]:
 
 
 def read_kitti(path: str | os.PathLike,
-               timestamps: np.ndarray | Sequence[float] | str | os.PathLike | None = None) -> Trajectory:
+               timestamps: np.ndarray | Sequence[float] | str | os.PathLike | None = None,
+               _text: list[bytes] | None = None) -> Trajectory:
     """Read a KITTI pose file (12 values per line, row-major 3x4 camera-to-world) -> Trajectory.
 
     ``timestamps``: None gives 0, 1, 2, ... (the line index); an (N,) array of seconds; or the path of a
@@ -173,7 +227,7 @@ def read_kitti(path: str | os.PathLike,
     strictly increasing. FormatError names the file and line at fault.
     """
     path = Path(path)
-    table, lines = _read_table(path, 12, "row-major 3x4 matrix r11 r12 r13 tx r21 ... tz")
+    table, lines = _read_table(path, 12, "row-major 3x4 matrix r11 r12 r13 tx r21 ... tz", _text)
     poses = pose_from_rows(table) if len(table) else np.zeros((0, 4, 4))
     R = poses[:, :3, :3]
     ortho = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2)) if len(R) else np.zeros(0)
@@ -228,15 +282,16 @@ def read_trajectory(path: str | os.PathLike,
     data line or the first one has another number of values.
     """
     path = Path(path)
-    first = next(_data_rows(path), None)
+    text = _read_lines(path)  # once: a pipe cannot be read twice
+    first = next(_data_rows(path, text), None)
     if first is None:
-        raise FormatError(path, None, "has no data lines: cannot tell TUM from KITTI")
+        raise FormatError(path, None, "has no poses (no data lines)")
     lineno, tokens = first
     if len(tokens) == 8:
         if timestamps is not None:
             raise ConfigError(f"timestamps: given, but {path} is a TUM file with its own timestamps")
-        return read_tum(path)
+        return read_tum(path, text)
     if len(tokens) == 12:
-        return read_kitti(path, timestamps)
+        return read_kitti(path, timestamps, text)
     raise FormatError(path, lineno, f"{len(tokens)} values: expected 8 (TUM: timestamp tx ty tz qx qy qz qw) "
                                     "or 12 (KITTI: row-major 3x4 pose)")

@@ -11,12 +11,13 @@ Specs:
 from __future__ import annotations
 
 import inspect
+import os
 import re
 from pathlib import Path
 from typing import Callable
 
 from ..camera import Intrinsics
-from ..errors import ConfigError, SourceError
+from ..errors import ConfigError, SourceError, missing_reason
 from .base import FrameSource
 from .euroc import open_euroc
 from .folder import has_glob, open_folder
@@ -49,7 +50,10 @@ def detect_layout(path: str | Path) -> str:
     """
     p = Path(path).expanduser()
     if not p.exists():
-        raise SourceError(f"{p} does not exist")
+        raise SourceError(f"{p} {missing_reason(p) or 'does not exist'}")
+    if not p.is_dir() and not p.is_file():
+        raise SourceError(f"{p} is neither a folder nor a video file; give a folder of images, a dataset folder "
+                          "or a video")
     if p.is_file():
         if p.suffix.lower() in VIDEO_EXTENSIONS:
             return "video"
@@ -110,11 +114,11 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
             raise SourceError(f"spec {text!r} names no path after '{m.group(1)}:'")
     else:
         layout, path = None, Path(text).expanduser()
-    if not path.exists() and has_glob(path.name) and layout in (None, "folder"):
+    if not os.path.exists(path) and has_glob(path.name) and layout in (None, "folder"):
         kw.setdefault("pattern", path.name)
         path, layout = path.parent, "folder"
-    if not path.exists():
-        raise SourceError(f"{path} does not exist")
+    if not os.path.exists(path):  # False for any path the OS refuses (too long a name, a symlink loop, ...)
+        raise SourceError(f"{path} {missing_reason(path) or 'does not exist'}")
     if layout is None:
         layout = detect_layout(path)
     opener = OPENERS[layout]

@@ -14,7 +14,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..errors import FormatError, SourceError
+from ..errors import FormatError, SourceError, missing_reason
 
 Converter = Callable[[str], object]
 
@@ -24,7 +24,8 @@ def require_path(path: str | Path, what: str, kind: str = "file") -> Path:
     p = Path(path).expanduser()
     ok = p.is_file() if kind == "file" else p.is_dir()
     if not ok:
-        state = "does not exist" if not p.exists() else f"is not a {'folder' if kind == 'dir' else 'file'}"
+        state = (missing_reason(p) or "does not exist") if not p.exists() else \
+            f"is not a {'folder' if kind == 'dir' else 'file'}"
         raise SourceError(f"{what} {p} {state}")
     return p
 
