@@ -102,7 +102,11 @@ def test_notebook_runs(path: Path, tmp_path: Path):
         assert loop_rmse < 0.01  # metres, in a 2.4 m x 1 m loop
     if path.stem == "04_features_and_matching":
         assert "epipolar inliers" in plain and "orb" in plain and "sift" in plain and pngs >= 4
-        ratios = [float(v) for v in re.findall(r"\b0\.\d{3}\b", plain.split("inlier ratio")[1])[:2]]
+        # rows of the table: index, features, keypoints 1 / 2, matches, epipolar inliers, inlier ratio, ...
+        rows = re.findall(r"^\d+\s+(orb|sift)\s+(\d+) / (\d+)\s+(\d+)\s+(\d+)\s+([0-9.]+)", plain, re.M)
+        assert [r[0] for r in rows] == ["orb", "sift"], plain
+        assert all(int(r[4]) / int(r[3]) == pytest.approx(float(r[5]), abs=1e-3) for r in rows)
+        ratios = [float(r[5]) for r in rows]
         assert ratios and min(ratios) > 0.7  # most matches agree with the ground-truth epipolar geometry
         if importlib.util.find_spec("torch") is None:
             assert "skipped: learned features need torch: pip install" in text

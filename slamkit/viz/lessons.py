@@ -87,12 +87,13 @@ class FeatureComparison:
         return self.epipolar_px < self.tolerance_px
 
     def row(self) -> dict:
-        """A table row: counts, the fraction of matches consistent with ground truth, the median distance."""
+        """A table row: keypoints in image 1 / image 2, matches, those within the tolerance of their epipolar
+        line (count and fraction), the median distance to it (pixels), the time."""
         m = len(self.pairs)
-        return {"features": self.name, "keypoints": f"{len(self.keypoints1)} / {len(self.keypoints2)}",
+        return {"features": self.name, "keypoints 1 / 2": f"{len(self.keypoints1)} / {len(self.keypoints2)}",
                 "matches": m, "epipolar inliers": int(self.inliers.sum()),
                 "inlier ratio": float(self.inliers.mean()) if m else float("nan"),
-                "median epipolar distance (px)": float(np.median(self.epipolar_px)) if m else float("nan"),
+                "median dist. (px)": float(np.median(self.epipolar_px)) if m else float("nan"),
                 "time (ms)": 1e3 * self.seconds}
 
 
@@ -151,48 +152,72 @@ def learned_pipelines() -> tuple[list[str], str]:
 
 @dataclass
 class FlowScores:
-    """The flow score of each frame after a keyframe, as the keyframe selector computes it."""
+    """The flow score of each frame against the keyframe before it, as the keyframe selector computes it:
+    when the rule fires, that frame becomes the keyframe the next frames are measured against."""
 
     frame_indices: np.ndarray
-    """(F,) source indices of the frames compared with the keyframe."""
+    """(F,) source indices of the frames scored."""
     scores: np.ndarray
-    """(F,) dimensionless: median |dx| / fx + median |dy| / fy of the matches to the keyframe."""
+    """(F,) dimensionless: median |dx| / fx + median |dy| / fy of the matches to the current keyframe."""
     matches: np.ndarray
-    """(F,) matches to the keyframe."""
+    """(F,) matches to the current keyframe."""
     threshold: float
     min_matches: int
     flows: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     """Per frame: (keyframe pixels (M, 2), current pixels (M, 2)) of the matches."""
+    references: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    """(F,) source index of the keyframe each frame was measured against."""
+
+    @property
+    def due(self) -> np.ndarray:
+        """(F,) bool: the rule makes the frame a keyframe (flow > threshold with enough matches)."""
+        return (self.scores > self.threshold) & (self.matches >= self.min_matches)
+
+    @property
+    def keyframes(self) -> list[int]:
+        """Source indices of the frames the rule makes keyframes, in order."""
+        return [int(i) for i in self.frame_indices[self.due]]
 
     @property
     def first_keyframe(self) -> int | None:
-        """Source index of the first frame the rule makes a keyframe (flow > threshold with enough matches)."""
-        due = (self.scores > self.threshold) & (self.matches >= self.min_matches)
-        return int(self.frame_indices[np.argmax(due)]) if due.any() else None
+        """Source index of the first frame the rule makes a keyframe (None if none)."""
+        return self.keyframes[0] if self.keyframes else None
 
 
 def flow_scores(source, keyframe_index: int, frame_indices, features: str = "orb",
                 config: SlamConfig | None = None) -> FlowScores:
-    """The flow score of ``frame_indices`` against the keyframe ``keyframe_index`` (source indices), matched
-    by descriptors (the pipeline matches through the local map instead; the score is the same formula)."""
+    """The flow score of ``frame_indices`` (increasing source indices) against the keyframe before them,
+    starting from ``keyframe_index``; a frame the rule makes a keyframe is the reference of the frames after
+    it, as in the pipeline. Matched by descriptors (the pipeline matches through the local map instead; the
+    score is the same formula)."""
     config = config or SlamConfig().with_overrides(features=features)
     extractor, _, _ = _pipeline(config.feature_pipeline)
-    kf = source[keyframe_index]
-    fk = extractor.extract(kf.gray)
-    xk = kf.camera.undistort_points(fk.keypoints)
-    cam = kf.camera
-    scores, matches, flows = [], [], []
+    kcfg = config.keyframes
+
+    def keyframe(index: int):
+        frame = source[int(index)]
+        f = extractor.extract(frame.gray)
+        return f, frame.camera.undistort_points(f.keypoints)
+
+    ref = int(keyframe_index)
+    fk, xk = keyframe(ref)
+    cam = source[ref].camera
+    scores, matches, flows, refs = [], [], [], []
     for i in frame_indices:
         fr = source[int(i)]
         fc = extractor.extract(fr.gray)
         pairs = match_descriptors(fk.descriptors, fc.descriptors, fk.binary, config.tracker.matching)
-        a, b = xk[pairs[:, 0]], fr.camera.undistort_points(fc.keypoints)[pairs[:, 1]]
-        scores.append(flow_score(a, b, cam.fx, cam.fy))
+        xc = fr.camera.undistort_points(fc.keypoints)
+        a, b = xk[pairs[:, 0]], xc[pairs[:, 1]]
+        score = flow_score(a, b, cam.fx, cam.fy)
+        scores.append(score)
         matches.append(len(pairs))
         flows.append((a, b))
-    kcfg = config.keyframes
+        refs.append(ref)
+        if score > kcfg.flow_threshold and len(pairs) >= kcfg.min_tracked_matches:
+            ref, fk, xk = int(i), fc, xc  # this frame is the new keyframe
     return FlowScores(np.asarray(list(frame_indices), np.int64), np.asarray(scores), np.asarray(matches),
-                      kcfg.flow_threshold, kcfg.min_tracked_matches, flows)
+                      kcfg.flow_threshold, kcfg.min_tracked_matches, flows, np.asarray(refs, np.int64))
 
 
 # ---------------------------------------------------------------------------------------------- two views
