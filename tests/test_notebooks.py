@@ -88,18 +88,30 @@ def test_notebook_runs(path: Path, tmp_path: Path):
         assert "<title>slamkit" in page and "slamkit-caption" in page
     if path.stem == "01_quickstart":
         assert "ATE RMSE" in text
-        rmse = float(text.split("ATE RMSE: ")[1].split(" m")[0])
-        assert rmse < 0.05  # metres, after Sim(3) alignment, on the synthetic room
+        rmse_cm = float(re.search(r"ATE RMSE: ([0-9.]+) cm", text).group(1))
+        assert rmse_cm < 5  # centimetres, after Sim(3) alignment, on the synthetic room
+        described = float(re.search(r"RMSE ([0-9.e-]+) cm", text).group(1))  # the same number, the same unit
+        assert described == pytest.approx(rmse_cm, rel=0.01, abs=0.006)
+        # the live view kept a frozen copy of the map for the saved notebook
+        html_out = "\n".join(o.get("data", {}).get("text/html", "") for c in nb.cells if c.cell_type == "code"
+                              for o in c.get("outputs", []))
+        assert 'class="slamkit-snapshot"' in html_out and "slamkit-legend" in html_out
         assert pngs >= 1
     if path.stem == "02_step_through":
         assert "first map:" in text and "keyframe decision" in text and "flow threshold now: 0.08" in text
         # Run All ends on a populated app: the last cell ran the new settings to the end
         n_before, n_after = (int(v) for v in re.findall(r"0\.0[58]: (\d+)", text.split("keyframes with")[-1]))
         assert n_after >= 2 and "showing the saved run" in text
+        assert n_after <= n_before  # what the text says: a higher flow threshold, fewer keyframes (whole runs)
+        outs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+        assert any("image/jpeg" in o.get("data", {}) for o in outs)  # the keyframe matches, drawn in the cell
+        # the live views and the app's map are kept frozen in the saved notebook, legend included
+        snapshots = [o for o in outs if 'class="slamkit-snapshot"' in o.get("data", {}).get("text/html", "")]
+        assert len(snapshots) >= 2 and all("slamkit-legend" in o["data"]["text/html"] for o in snapshots)
         # the loop-closure section: one closure on the room driven round twice, and an accurate map after it
         assert "LOOP CLOSED with the keyframe of frame" in text and "loop closures so far: 1" in text
-        loop_rmse = float(re.search(r"AteResult\(rmse=([0-9.e-]+) m", text).group(1))
-        assert loop_rmse < 0.01  # metres, in a 2.4 m x 1 m loop
+        loop_rmse_cm = float(re.search(r"RMSE ([0-9.e-]+) cm", text.split("loop closures so far")[0]).group(1))
+        assert loop_rmse_cm < 1  # centimetres, in a 2.4 m x 1 m loop
     if path.stem == "04_features_and_matching":
         assert "epipolar inliers" in plain and "orb" in plain and "sift" in plain and pngs >= 4
         # rows of the table: index, features, keypoints 1 / 2, matches, epipolar inliers, inlier ratio, ...
