@@ -211,7 +211,7 @@ class MapView:
         object holds instead: with ``snapshot``, the current scene frozen (:meth:`snapshot_html`), else a
         sentence saying the view needs the kernel."""
         width = int(round(height * self.aspect))
-        inner = (snapshot_iframe(self.static_html(), "100%", height, lazy=True) if snapshot else
+        inner = (snapshot_iframe(self.static_html(legend=False), "100%", height, lazy=True) if snapshot else
                  f'<div class="slamkit-no-kernel" style="padding:2em;font:13px sans-serif;color:#555">'
                  f'{html.escape(NO_KERNEL_TEXT)}</div>')
         return (f'<div class="slamkit-map-box" style="height:{int(height)}px;width:{width}px;max-width:100%;'
@@ -243,12 +243,12 @@ class MapView:
         """:meth:`snapshot_html` as a cell output (the last expression of a cell)."""
         return HTML(self.snapshot_html(height, title, caption))
 
-    def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None) -> str:
+    def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None, legend: bool = True) -> str:
         """The current scene as one self-contained HTML page (the viewer's JavaScript included), titled
-        ``title``, with ``caption`` (default: "drag to orbit, scroll to zoom") and the colour legend over
-        the top left of the viewer."""
+        ``title``, with ``caption`` (default: "drag to orbit, scroll to zoom") and the colour legend (unless
+        ``legend`` is False: :meth:`iframe_html` draws its own) over the top left of the viewer."""
         return captioned_html(self._out.static_html(), title,
-                              "drag to orbit, scroll to zoom" if caption is None else caption)
+                              "drag to orbit, scroll to zoom" if caption is None else caption, legend)
 
     def export_html(self, path: str | os.PathLike, title: str = DEFAULT_TITLE, caption: str | None = None) -> Path:
         """Write :meth:`static_html` to ``path`` (atomically) for reports; opens from file:// offline."""
