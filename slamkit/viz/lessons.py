@@ -349,6 +349,83 @@ def perturb_and_adjust(rec: pycolmap.Reconstruction, sigma: float, iterations: i
     return AdjustmentDemo(before, after, moved_before, moved_after, summary.brief_report())
 
 
+# ---------------------------------------------------------------------------------------------- loop closure
+
+
+@dataclass
+class LoopCorrection:
+    """What one loop closure changed, against ground truth: the trajectory just before the closing step and
+    just after it, each Sim(3)-aligned to the ground truth over the same frames (those posed before).
+
+    ``*_xyz``: (N, 3) metres, aligned; ``gt_xyz`` (N, 3) the ground truth of those frames; ``query`` and
+    ``candidate``: indices into them of the newest frame before the closure and of the candidate keyframe's
+    frame (the place returned to); ``gap_*``: metres between those two frames' positions (ground truth,
+    the map before, the map after); ``ate_*``: ATE RMSE over the N frames, metres."""
+
+    gt_xyz: np.ndarray
+    before_xyz: np.ndarray
+    after_xyz: np.ndarray
+    query: int
+    candidate: int
+    query_frame: int
+    candidate_frame: int
+    gap_gt: float
+    gap_before: float
+    gap_after: float
+    ate_before: float
+    ate_after: float
+
+
+def loop_correction(gt, before, after, closure, frame_times: np.ndarray) -> LoopCorrection:
+    """Compare the trajectories ``before`` and ``after`` a loop closure (``slam.trajectory()`` at the steps
+    around it) with the ground truth ``gt``; ``closure``: the step's ``loop_closure``; ``frame_times``:
+    (F,) the timestamp of every frame index (to find the candidate's frame on the trajectories)."""
+    from ..eval import ate
+
+    common = np.isin(np.round(after.timestamps, 6), np.round(before.timestamps, 6))
+    after = after.subset(common)
+    ra, rb = ate(gt, after), ate(gt, before)
+    a_xyz = ra.alignment.apply(after.subset(ra.idx_est)).positions
+    b_xyz = rb.alignment.apply(before.subset(rb.idx_est)).positions
+    g_xyz = gt.positions[ra.idx_gt]
+    t = after.timestamps[ra.idx_est]
+    n = min(len(a_xyz), len(b_xyz))
+    q = n - 1  # the newest frame posed before the closing step
+    c = int(np.argmin(np.abs(t[:n] - frame_times[int(closure.candidate_frame)])))
+    qf = int(np.argmin(np.abs(frame_times - t[q])))
+
+    def gap(x):
+        return float(np.linalg.norm(x[q] - x[c]))
+
+    return LoopCorrection(g_xyz[:n], b_xyz[:n], a_xyz[:n], q, c, qf, int(closure.candidate_frame),
+                          gap(g_xyz), gap(b_xyz), gap(a_xyz), rb.rmse, ra.rmse)
+
+
+def plot_loop_correction(ax, lc: LoopCorrection) -> None:
+    """Top view (metres) of the ground truth, the map before the loop closure and after it, and the
+    closure: the two frames the loop joins, before (dashed) and after (thick) the correction."""
+    from ..eval.plots import view_axes
+    from .scene import LOOP_COLOR
+
+    (i, j, name), _ = view_axes(lc.gt_xyz)
+    ax.plot(lc.gt_xyz[:, i], lc.gt_xyz[:, j], color="0.3", lw=2.5, alpha=0.5, label="ground truth")
+    ax.plot(lc.before_xyz[:, i], lc.before_xyz[:, j], color="tab:red", lw=1.2, label="map before the loop closure")
+    ax.plot(lc.after_xyz[:, i], lc.after_xyz[:, j], color="tab:blue", lw=1.2, label="map after the correction")
+    for xyz, style, lw, label in ((lc.before_xyz, "--", 2, f"frames {lc.query_frame} and {lc.candidate_frame} "
+                                   f"before: {lc.gap_before:.1f} m apart"),
+                                  (lc.after_xyz, "-", 5, f"after: {lc.gap_after:.1f} m apart "
+                                   f"(truth: {lc.gap_gt:.1f} m)")):
+        ax.plot(xyz[[lc.query, lc.candidate], i], xyz[[lc.query, lc.candidate], j], style, color=LOOP_COLOR,
+                lw=lw, label="loop closure: " + label if style == "--" else label)
+    ax.plot(*lc.gt_xyz[0, [i, j]], "o", color="green", ms=8, label="start")
+    ax.set_xlabel("xyz"[i] + " [m]")
+    ax.set_ylabel("xyz"[j] + " [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{name}, Sim(3)-aligned: ATE {lc.ate_before:.2f} m before, {lc.ate_after:.2f} m after")
+    ax.legend(fontsize=8, loc="best")
+
+
 # ---------------------------------------------------------------------------------------------- drawing
 
 
@@ -370,4 +447,5 @@ def plot_matches(ax, frame1: Frame, frame2: Frame, comparison: FeatureComparison
 
 __all__ = ["plot_matches", "skew", "relative_pose", "fundamental_from_poses", "epipolar_distances", "FeatureComparison",
            "detect_and_match", "compare_features", "learned_pipelines", "FlowScores", "flow_scores", "TwoView",
-           "triangulation_angles", "two_view", "reprojection_errors", "AdjustmentDemo", "perturb_and_adjust"]
+           "triangulation_angles", "two_view", "reprojection_errors", "AdjustmentDemo", "perturb_and_adjust",
+           "LoopCorrection", "loop_correction", "plot_loop_correction"]
