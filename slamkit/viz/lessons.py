@@ -401,9 +401,11 @@ def loop_correction(gt, before, after, closure, frame_times: np.ndarray) -> Loop
                           gap(g_xyz), gap(b_xyz), gap(a_xyz), rb.rmse, ra.rmse)
 
 
-def plot_loop_correction(ax, lc: LoopCorrection) -> None:
-    """Top view (metres) of the ground truth, the map before the loop closure and after it, and the
-    closure: the two frames the loop joins, before (dashed) and after (thick) the correction."""
+def plot_loop_correction(ax, lc: LoopCorrection, unit: str = "m") -> None:
+    """Top view (axes in metres) of the ground truth, the map before the loop closure and after it, and the
+    closure: the two frames the loop joins, before (dashed) and after (thick) the correction; the gaps and
+    ATE in the legend and title in ``unit`` ("m" or "cm")."""
+    k = {"m": 1.0, "cm": 100.0}[unit]
     from ..eval.plots import view_axes
     from .scene import LOOP_COLOR
 
@@ -412,9 +414,9 @@ def plot_loop_correction(ax, lc: LoopCorrection) -> None:
     ax.plot(lc.before_xyz[:, i], lc.before_xyz[:, j], color="tab:red", lw=1.2, label="map before the loop closure")
     ax.plot(lc.after_xyz[:, i], lc.after_xyz[:, j], color="tab:blue", lw=1.2, label="map after the correction")
     for xyz, style, lw, label in ((lc.before_xyz, "--", 2, f"frames {lc.query_frame} and {lc.candidate_frame} "
-                                   f"before: {lc.gap_before:.1f} m apart"),
-                                  (lc.after_xyz, "-", 5, f"after: {lc.gap_after:.1f} m apart "
-                                   f"(truth: {lc.gap_gt:.1f} m)")):
+                                   f"before: {k * lc.gap_before:.3g} {unit} apart"),
+                                  (lc.after_xyz, "-", 5, f"after: {k * lc.gap_after:.3g} {unit} apart "
+                                   f"(truth: {k * lc.gap_gt:.3g} {unit})")):
         ax.plot(xyz[[lc.query, lc.candidate], i], xyz[[lc.query, lc.candidate], j], style, color=LOOP_COLOR,
                 lw=lw, label="loop closure: " + label if style == "--" else label)
     ax.plot(*lc.gt_xyz[0, [i, j]], "o", color="green", ms=8, label="start")
@@ -422,7 +424,8 @@ def plot_loop_correction(ax, lc: LoopCorrection) -> None:
     ax.set_ylabel("xyz"[j] + " [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(alpha=0.3)
-    ax.set_title(f"{name}, Sim(3)-aligned: ATE {lc.ate_before:.2f} m before, {lc.ate_after:.2f} m after")
+    ax.set_title(f"{name}, Sim(3)-aligned: ATE {k * lc.ate_before:.3g} {unit} before, "
+                 f"{k * lc.ate_after:.3g} {unit} after")
     ax.legend(fontsize=8, loc="best")
 
 
