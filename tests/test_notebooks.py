@@ -112,6 +112,13 @@ def test_notebook_runs(path: Path, tmp_path: Path):
         assert "LOOP CLOSED with the keyframe of frame" in text and "loop closures so far: 1" in text
         loop_rmse_cm = float(re.search(r"RMSE ([0-9.e-]+) cm", text.split("loop closures so far")[0]).group(1))
         assert loop_rmse_cm < 1  # centimetres, in a 2.4 m x 1 m loop
+        # the closure against ground truth: after the correction the map puts the two frames as far apart as
+        # they truly are (to a centimetre, in a 2.4 m room)
+        gap = re.search(r"are ([0-9.e-]+) cm apart; the map put them ([0-9.e-]+) cm apart before the closure, "
+                        r"([0-9.e-]+) cm after", text)
+        assert gap, "the loop closure's gaps against ground truth"
+        truth, _, after = (float(v) for v in gap.groups())
+        assert abs(after - truth) < 1.0
     if path.stem == "04_features_and_matching":
         assert "epipolar inliers" in plain and "orb" in plain and "sift" in plain and pngs >= 4
         # rows of the table: index, features, keypoints 1 / 2, matches, epipolar inliers, inlier ratio, ...
