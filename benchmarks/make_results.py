@@ -18,7 +18,9 @@ table3     ``slamkit ablate``: frame skip, initialization frames and flow       
            KITTI 07 0-159
 ========== ==================================================================== ================================
 
-Each section runs its script in a subprocess (so the page never mixes code versions), with a time budget;
+Each section runs its script in a subprocess, with a time budget (``--budget-scale`` multiplies it: on
+2 cores shared with other jobs, load average 13-16, ``--quick`` took 16 min and two sections ran out of
+their budgets);
 a section whose data is absent, that fails or runs out of time says so on the page instead of keeping an old
 number. The page gets the date, the commit (``+dirty`` when the work tree has changes), the machine and
 its load, every command, each section's wall time and its CSV under ``benchmarks/results/``, plus plots in
