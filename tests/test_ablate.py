@@ -224,7 +224,7 @@ def test_ablation_notebook_runs_tiny(tmp_path):
     text = "\n".join(o.get("text", "") for o in outputs if o.output_type == "stream")
     assert "1 runs:" in text and "1 of 1 runs ok" in text
     html = "\n".join(o.get("data", {}).get("text/html", "") for o in outputs)
-    assert "ate_rmse_m" in html and "<table" in html  # the DataFrame is shown
+    assert "ATE (cm)" in html and "<table" in html and "ATE sd" not in html  # in cm; one repeat: no spread column
     assert "1/1" in text or "1/1" in html or any("application/vnd.jupyter.widget-view+json" in o.get("data", {})
                                                    for o in outputs)  # tqdm.auto progress
     assert sum("image/png" in o.get("data", {}) for o in outputs) >= 2  # effects + best trajectory

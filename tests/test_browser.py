@@ -78,6 +78,10 @@ def lab(tmp_path):
     subprocess.run(jupyter + ["labextension", "disable", "--level=user",
                               "@jupyterlab/apputils-extension:announcements"], env=env, check=True,
                    capture_output=True)
+    # widget state saved with the notebook, as `make lab` configures it (the app reopens without a kernel)
+    widget_settings = Path(env["JUPYTERLAB_SETTINGS_DIR"]) / "@jupyter-widgets" / "jupyterlab-manager"
+    widget_settings.mkdir(parents=True, exist_ok=True)
+    (widget_settings / "plugin.jupyterlab-settings").write_text('{"saveState": true}')
     port = _free_port()
     before = _meshcat_servers()
     log = open(tmp_path / "jupyter.log", "w")
@@ -96,7 +100,7 @@ def lab(tmp_path):
                 if proc.poll() is not None or time.monotonic() > deadline:
                     raise RuntimeError("jupyter lab did not start: " + (tmp_path / "jupyter.log").read_text()[-2000:])
                 time.sleep(0.5)
-        yield dict(url=url, proc=proc, tmp=tmp_path, before=before)
+        yield dict(url=url, proc=proc, tmp=tmp_path, before=before, work=work, env=env)
     finally:
         proc.send_signal(signal.SIGTERM)  # kernels shut down cleanly; their meshcat servers exit
         try:
@@ -193,6 +197,80 @@ def _check_geometry(viewer_frame, frame_el) -> dict:
     return info
 
 
+def _live_viewer(page):
+    """The app's live viewer page (the frame of the ``<object>`` in the app), once its viewer exists."""
+    obj = page.locator(".slamkit-map-view object.slamkit-map").first
+    obj.wait_for()
+    url = obj.get_attribute("data")
+    frame = _wait(lambda: next((f for f in page.frames if f.url == url and not f.is_detached()), None), 30,
+                  "the live viewer's page")
+    frame.wait_for_function("() => typeof viewer !== 'undefined'")
+    return frame
+
+
+def _save_and_stop_kernel(page, lab) -> Path:
+    """Save the notebook from JupyterLab (widget state included) and shut its kernel down; the saved file."""
+    path = lab["work"] / NOTEBOOK.name
+    mtime = path.stat().st_mtime
+    page.evaluate("() => window.jupyterapp.commands.execute('docmanager:save')")
+    _wait(lambda: path.stat().st_mtime > mtime and "widget-state" in path.read_text(), 60, "the notebook saved")
+    page.evaluate("() => window.jupyterapp.serviceManager.sessions.shutdownAll()")
+    _wait(lambda: not (_meshcat_servers() - lab["before"]), 30, "the kernel's meshcat servers to stop")
+    return path
+
+
+def _snapshot_scenes(page, min_views: int) -> list[dict]:
+    """The scene of every frozen map (``iframe.slamkit-snapshot``) on the page, each scrolled into view."""
+    frames = page.locator("iframe.slamkit-snapshot")
+    _wait(lambda: frames.count() >= min_views, 60, f"{min_views} frozen maps")
+    scenes = []
+    for i in range(frames.count()):
+        el = frames.nth(i)
+        if not el.is_visible():
+            continue
+        el.scroll_into_view_if_needed()
+        frame = _wait(lambda: el.element_handle().content_frame(), 30, "the frozen map's page")
+        frame.wait_for_function("() => typeof viewer !== 'undefined'", timeout=60_000)
+        scenes.append(_wait(lambda: (lambda sc: sc if sc["points"] else None)(frame.evaluate(SCENE_JS)), 30,
+                            "the frozen map's points"))
+    return scenes
+
+
+def _check_saved_without_kernel(browser, page, lab, saved: Path, final: dict) -> None:
+    """The saved notebook with no kernel: as ``nbconvert --to html`` in chromium from file://, and reopened in
+    JupyterLab. No view may be an error page or empty: each live view shows its frozen map (or says it needs
+    the kernel), the frozen maps hold points and keyframes, the app comes back from its saved widget state."""
+    nb = nbformat.read(saved, as_version=4)
+    assert "application/vnd.jupyter.widget-state+json" in nb.metadata.get("widgets", {}), "no widget state saved"
+    out = lab["tmp"] / "html"
+    subprocess.run([sys.executable, "-m", "jupyter", "nbconvert", "--to", "html", str(saved), "--output-dir",
+                    str(out)], check=True, capture_output=True, env=lab["env"])
+    static = browser.new_page(viewport={"width": 1500, "height": 1100})
+    try:
+        static.goto((out / saved.with_suffix(".html").name).as_uri())
+        scenes = _snapshot_scenes(static, 2)  # the loop closure's view and the app's map in the last cell
+        assert len(scenes) >= 2 and all(sc["points"] > 100 and sc["frustums"] >= 3 for sc in scenes), scenes
+        for i in range(static.locator("object.slamkit-map").count()):  # dead live views: their fallback only
+            assert static.locator("object.slamkit-map").nth(i).evaluate("o => !o.contentDocument")
+        print("nbconvert html, frozen maps:", scenes)
+    finally:
+        static.close()
+    # JupyterLab, reopened: the widgets from their saved state, the maps frozen in the outputs
+    page.reload()
+    page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget", timeout=90_000)
+    page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
+    time.sleep(2.0)
+    assert page.get_by_text("Error displaying widget").count() == 0
+    app_map = page.locator(".slamkit-map-view iframe.slamkit-snapshot").first
+    app_map.wait_for(timeout=60_000)
+    scenes = _snapshot_scenes(page, 3)
+    assert all(sc["points"] > 100 and sc["frustums"] >= 3 for sc in scenes), scenes
+    assert any(sc["points"] == final["points"] and sc["frustums"] == final["keyframes"] for sc in scenes), (
+        scenes, final)  # the app's map as it was when saved
+    _shot(page, app_map, lab["tmp"] / "reopened_app_map.png")
+    print("reopened in JupyterLab, frozen maps:", scenes)
+
+
 def _no_raw_html(page) -> None:
     texts = page.locator(".jp-OutputArea-output").all_text_contents()
     bad = [t for t in texts if "<span" in t or "<div" in t or "ViewSettings(" in t]
@@ -250,10 +328,9 @@ def test_step_through_notebook_in_chromium(lab):
                               30, "the populated app")
             assert populated["keyframes"] >= 3 and populated["points"] > 300
             _no_raw_html(page)
-            map_frame_el = page.locator(".slamkit-map-view iframe").first
+            map_frame_el = page.locator(".slamkit-map-view object.slamkit-map").first
             map_frame_el.wait_for()
-            viewer_frame = next(f for f in page.frames if "/static/" in f.url)
-            viewer_frame.wait_for_function("() => typeof viewer !== 'undefined'")
+            viewer_frame = _live_viewer(page)
             geometry = {"run_all": _check_geometry(viewer_frame, map_frame_el)}
 
             # --- Draw matches and a clip range, then Reset: both belong to the discarded run and must go
@@ -300,6 +377,7 @@ def test_step_through_notebook_in_chromium(lab):
             page.locator("button.slamkit-reset-button").first.click()
             _wait(lambda: _summary(page)["frames"] == 0 and page.locator(".slamkit-pending-text").count() == 0,
                   60, "the reset")
+            viewer_frame = _live_viewer(page)  # the reset replaced the finished run's frozen map: a new page
             empty = viewer_frame.evaluate(SCENE_JS)
             assert empty == {"points": 0, "groups": 0, "frustums": 0}, empty
             before = _shot(page, map_frame_el, tmp / "map_before_run.png")
@@ -326,6 +404,7 @@ def test_step_through_notebook_in_chromium(lab):
             assert f"{new_threshold:.3f} (flow threshold)" in page.locator(".slamkit-step").first.text_content()
 
             # --- the three.js scene holds the map: points and keyframe frustums
+            viewer_frame = _live_viewer(page)  # the end of the run froze the map into the view: a new page
             scene = _wait(lambda: (lambda sc: sc if sc["points"] == s["points"] else None)(
                 viewer_frame.evaluate(SCENE_JS)), 30, "the viewer to receive the map")
             assert scene["points"] == s["points"] == s["scene-points"]
@@ -347,5 +426,9 @@ def test_step_through_notebook_in_chromium(lab):
                 shutil.copy(tmp / "page.png", Path(os.environ["SLAMKIT_SCREENSHOTS"]) / "page.png")
             (tmp / "scene.json").write_text(json.dumps({"summary": s, "scene": scene, "geometry": geometry}))
             print("geometry:", geometry)
+
+            # --- Save, stop the kernel, reopen: every 3D view shows a map, the app its widgets
+            saved = _save_and_stop_kernel(page, lab)
+            _check_saved_without_kernel(browser, page, lab, saved, s)
         finally:
             browser.close()

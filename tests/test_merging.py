@@ -341,5 +341,10 @@ def test_map_view_draws_the_merge_as_a_loop_edge(merged_run, tmp_path):
 
         drawn = attribute(scene_objects(view)["/meshcat/slamkit/path/loops"], "position").T  # (2, 3) vertices
         assert np.allclose(drawn, ends, atol=1e-4)
+        # and the band that makes it stand out (WebGL lines are 1 px): points from one keyframe to the other
+        band = attribute(scene_objects(view)["/meshcat/slamkit/path/loop_band"], "position").T
+        assert len(band) == 48 and np.allclose(band[[0, -1]], ends, atol=1e-4)
+        along = (band - ends[0]) @ (ends[1] - ends[0]) / np.sum((ends[1] - ends[0]) ** 2)
+        assert np.allclose(band, ends[0] + along[:, None] * (ends[1] - ends[0]), atol=1e-4)
     finally:
         view.close()

@@ -88,21 +88,45 @@ def test_notebook_runs(path: Path, tmp_path: Path):
         assert "<title>slamkit" in page and "slamkit-caption" in page
     if path.stem == "01_quickstart":
         assert "ATE RMSE" in text
-        rmse = float(text.split("ATE RMSE: ")[1].split(" m")[0])
-        assert rmse < 0.05  # metres, after Sim(3) alignment, on the synthetic room
+        rmse_cm = float(re.search(r"ATE RMSE: ([0-9.]+) cm", text).group(1))
+        assert rmse_cm < 5  # centimetres, after Sim(3) alignment, on the synthetic room
+        described = float(re.search(r"RMSE ([0-9.e-]+) cm", text).group(1))  # the same number, the same unit
+        assert described == pytest.approx(rmse_cm, rel=0.01, abs=0.006)
+        # the live view kept a frozen copy of the map for the saved notebook
+        html_out = "\n".join(o.get("data", {}).get("text/html", "") for c in nb.cells if c.cell_type == "code"
+                              for o in c.get("outputs", []))
+        assert 'class="slamkit-snapshot"' in html_out and "slamkit-legend" in html_out
         assert pngs >= 1
     if path.stem == "02_step_through":
         assert "first map:" in text and "keyframe decision" in text and "flow threshold now: 0.08" in text
         # Run All ends on a populated app: the last cell ran the new settings to the end
         n_before, n_after = (int(v) for v in re.findall(r"0\.0[58]: (\d+)", text.split("keyframes with")[-1]))
         assert n_after >= 2 and "showing the saved run" in text
+        assert n_after <= n_before  # what the text says: a higher flow threshold, fewer keyframes (whole runs)
+        outs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
+        matches_cell = next(c for c in nb.cells if c.cell_type == "code" and "draw_keyframe_matches" in c.source)
+        assert any({"image/jpeg", "image/png"} & set(o.get("data", {})) for o in matches_cell.outputs)  # drawn here
+        # the live views and the app's map are kept frozen in the saved notebook, legend included
+        snapshots = [o for o in outs if 'class="slamkit-snapshot"' in o.get("data", {}).get("text/html", "")]
+        assert len(snapshots) >= 2 and all("slamkit-legend" in o["data"]["text/html"] for o in snapshots)
         # the loop-closure section: one closure on the room driven round twice, and an accurate map after it
         assert "LOOP CLOSED with the keyframe of frame" in text and "loop closures so far: 1" in text
-        loop_rmse = float(re.search(r"AteResult\(rmse=([0-9.e-]+) m", text).group(1))
-        assert loop_rmse < 0.01  # metres, in a 2.4 m x 1 m loop
+        loop_rmse_cm = float(re.search(r"RMSE ([0-9.e-]+) cm", text.split("loop closures so far")[0]).group(1))
+        assert loop_rmse_cm < 1  # centimetres, in a 2.4 m x 1 m loop
+        # the closure against ground truth: after the correction the map puts the two frames as far apart as
+        # they truly are (to a centimetre, in a 2.4 m room)
+        gap = re.search(r"are ([0-9.e-]+) cm apart; the map put them ([0-9.e-]+) cm apart before the closure, "
+                        r"([0-9.e-]+) cm after", text)
+        assert gap, "the loop closure's gaps against ground truth"
+        truth, _, after = (float(v) for v in gap.groups())
+        assert abs(after - truth) < 1.0
     if path.stem == "04_features_and_matching":
         assert "epipolar inliers" in plain and "orb" in plain and "sift" in plain and pngs >= 4
-        ratios = [float(v) for v in re.findall(r"\b0\.\d{3}\b", plain.split("inlier ratio")[1])[:2]]
+        # rows of the table: index, features, keypoints 1 / 2, matches, epipolar inliers, inlier ratio, ...
+        rows = re.findall(r"^\d+\s+(orb|sift)\s+(\d+) / (\d+)\s+(\d+)\s+(\d+)\s+([0-9.]+)", plain, re.M)
+        assert [r[0] for r in rows] == ["orb", "sift"], plain
+        assert all(int(r[4]) / int(r[3]) == pytest.approx(float(r[5]), abs=1e-3) for r in rows)
+        ratios = [float(r[5]) for r in rows]
         assert ratios and min(ratios) > 0.7  # most matches agree with the ground-truth epipolar geometry
         if importlib.util.find_spec("torch") is None:
             assert "skipped: learned features need torch: pip install" in text

@@ -498,6 +498,10 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert app.view.scene_counts()["keyframes"] == app.slam.slam_map.num_keyframes
         assert app.f_cur.value[:2] == b"\xff\xd8" and app.f_kf.value[:2] == b"\xff\xd8"
         assert "keyframe image id" in app.f_kf_label.value
+        assert app.step() is None and "the run is finished" in app.status_text  # Step at the end says so
+        # the finished map is also frozen in the app's view: a saved notebook shows it without a kernel
+        assert 'class="slamkit-snapshot"' in app.map_html.value and "slamkit-legend" in app.map_html.value
+        assert app.m_image.layout.display == "none"  # no broken-image icon before a picture is drawn
         kfs = sorted(app.slam.slam_map.keyframes)
         assert (app.m_kf1.value, app.m_kf2.value) == (kfs[-2], kfs[-1])  # the latest two keyframes
         final = np.linalg.inv(app.slam.pose_of(len(app.slam.records) - 1))  # after the final global BA
@@ -505,6 +509,7 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert "<b>50 px</b> here (f = 500 px)" in app.w_help.value and "map units" in app.v_units.value
         img = app.draw_keyframe_matches()
         assert img is not None and "observe the same 3D points" in app.m_label.value
+        assert app.m_image.layout.display is None
         # the track choices: the longest tracks of the map, longest first
         longest = [p for _, p in app.v_track.options[1:]]
         lengths = [app.slam.slam_map.reconstruction.point3D(p).track.length() for p in longest]
@@ -527,7 +532,10 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert all((ds / "images" / rec.image(i).name).is_file() for i in rec.reg_image_ids())
         # Reset forgets the discarded run's picture, clip range and track
         app.reset()
-        assert app.m_image.value == b"" and app.m_label.value == ""
+        assert app.m_image.value == b"" and app.m_label.value == "" and app.m_image.layout.display == "none"
+        assert "slamkit-snapshot" not in app.map_html.value  # the discarded run's frozen map is gone
+        app.step()
+        assert app.status_text.startswith("stepped to frame 0") and "initializing: no map yet" in app.f_kf_label.value
         assert not app.v_clip_on.value and app.view.settings.clip is None and app.v_track.value == -1
         assert app.view.settings.track_point == -1 and list(app.m_kf1.options) == []
         # an unknown data source is reported, not raised

@@ -123,6 +123,17 @@ class AteResult:
                 f"matched={self.n_matched}/{self.n_est} estimate poses, {self.n_gt} ground-truth poses, "
                 f"align={self.alignment.kind}, scale={self.alignment.scale:.6g})")
 
+    def describe(self, unit: str = "m") -> str:
+        """A short multi-line summary for people, every length in ``unit`` ("m", "cm" or "mm")."""
+        k = {"m": 1.0, "cm": 100.0, "mm": 1000.0}.get(unit)
+        if k is None:
+            raise ValueError(f"unit must be 'm', 'cm' or 'mm' (got {unit!r})")
+        kind = {"sim3": "Sim(3)", "se3": "SE(3)"}.get(self.alignment.kind, self.alignment.kind)
+        return (f"ATE after {kind} alignment (scale {self.alignment.scale:.4g}):\n"
+                f"  RMSE {k * self.rmse:.3g} {unit}, mean {k * self.mean:.3g} {unit}, median {k * self.median:.3g} "
+                f"{unit}, max {k * self.max:.3g} {unit}\n"
+                f"  over {self.n_matched} of {self.n_est} estimated poses ({self.n_gt} ground-truth poses)")
+
     def to_dict(self) -> dict:
         """JSON-serialisable summary (no per-frame arrays)."""
         return {**self.stats.to_dict(), "matched": self.n_matched, "estimate_poses": self.n_est,

@@ -29,17 +29,28 @@ def _save(fig, path: str | os.PathLike) -> Path:
     return atomic_write_bytes(Path(path), buf.getvalue())
 
 
+def view_axes(xyz: np.ndarray) -> tuple[tuple[int, int, str], tuple[int, int, str]]:
+    """((i, j, title) of the top view, (i, j, title) of the side view) for positions ``xyz`` (N, 3): "up" is
+    the axis along which they spread least (the ground plane holds the two others), so a car, a walk through
+    a room and a synthetic scene with z up are all seen from above, whatever their world frame."""
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    up = int(np.argmin(np.ptp(xyz, axis=0))) if len(xyz) else 2
+    a, b = (k for k in range(3) if k != up)
+    return (a, b, f"top view ({'xyz'[a]}, {'xyz'[b]})"), (a, up, f"side view ({'xyz'[a]}, {'xyz'[up]})")
+
+
 def plot_trajectory_views(gt_xyz: np.ndarray, est_xyz: np.ndarray, errors: np.ndarray, path: str | os.PathLike,
                           title: str = "", gt_full_xyz: np.ndarray | None = None) -> Path:
-    """Top-down (x-z, the ground plane of a camera looking along z with y down) and side (x-y) views of the
-    aligned estimate (``est_xyz`` (N, 3) metres, coloured by ``errors`` (N,) metres) over the ground
-    truth (``gt_xyz`` (N, 3), matched; ``gt_full_xyz`` (M, 3) drawn faintly when given)."""
+    """Top and side views (:func:`view_axes`) of the aligned estimate (``est_xyz`` (N, 3) metres, coloured by
+    ``errors`` (N,) metres, shown in cm) over the ground truth (``gt_xyz`` (N, 3), matched; ``gt_full_xyz``
+    (M, 3) drawn faintly when given). Axes in metres, equal scale."""
     fig = Figure(figsize=(12, 5.2), layout="constrained")
     axes = fig.subplots(1, 2)
     err_cm = np.asarray(errors) * 100.0
     vmax = float(np.percentile(err_cm, 98)) if len(err_cm) else 1.0
     sc = None
-    for ax, (i, j, name) in zip(axes, [(0, 2, "top-down (x-z)"), (0, 1, "side (x-y)")]):
+    ref = gt_full_xyz if gt_full_xyz is not None and len(gt_full_xyz) else gt_xyz
+    for ax, (i, j, name) in zip(axes, view_axes(ref)):
         if gt_full_xyz is not None and len(gt_full_xyz):
             ax.plot(gt_full_xyz[:, i], gt_full_xyz[:, j], color="0.8", lw=1, label="ground truth (all)")
         ax.plot(gt_xyz[:, i], gt_xyz[:, j], color="0.25", lw=1.5, ls="--", label="ground truth")
@@ -50,8 +61,8 @@ def plot_trajectory_views(gt_xyz: np.ndarray, est_xyz: np.ndarray, errors: np.nd
             ax.plot(*est_xyz[0, [i, j]], marker="o", color="green", ms=8, zorder=4, ls="", label="start")
         ax.set_xlabel("xyz"[i] + " [m]")
         ax.set_ylabel("xyz"[j] + " [m]")
-        if j == 1:
-            ax.invert_yaxis()  # camera y points down: up is up on the page
+        if j == 1 and name.startswith("side"):
+            ax.invert_yaxis()  # a camera-like world frame (y down): up is up on the page
         ax.set_aspect("equal", adjustable="datalim")
         ax.set_title(name)
         ax.grid(alpha=0.3)

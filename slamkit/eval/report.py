@@ -5,7 +5,7 @@ markdown + HTML page in the run folder.
 >>> result["all_frames"]["ate"]["rmse"]     # metres                              # doctest: +SKIP
 
 Writes into ``RUN``: ``report.md``, ``report.html``, ``evaluation.json`` and ``plots/`` (trajectory
-top-down and side views coloured by error, error over time, time per stage), plus ``map.html`` (the
+top and side views coloured by error, error over time, time per stage), plus ``map.html`` (the
 static 3D map of :class:`slamkit.viz.meshcat_view.MapView`) when it can be made without a browser;
 otherwise the report links ``points.ply``. matplotlib and meshcat are imported only when plotting.
 """

@@ -38,7 +38,7 @@ from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
 from .explain import flow_help_html, scale_html
-from .meshcat_view import MapView, legend_text
+from .meshcat_view import MapView
 from .settings import ViewSettings
 
 DEFAULT_SOURCE = "default"
@@ -197,6 +197,8 @@ class SlamApp(AppWidgets):
         """Process one frame and update the views (None when the sequence is done)."""
         if self.slam.done:
             self._finish()
+            self._status(f"the run is finished ({len(self.slam.records)} frames): nothing left to step; Reset "
+                         "starts over, Save writes the map and trajectory")
             return None
         result = self.slam.step()
         self.results.append(result)
@@ -226,6 +228,8 @@ class SlamApp(AppWidgets):
             return self._task
         self._running = True
         self._set_run_button()
+        self._status(f"running from frame {len(self.slam.records)} of {len(self.slam)}; Pause stops after the "
+                     "current frame")
         try:
             loop = asyncio.get_running_loop()  # the kernel's loop (widget callbacks run inside it)
         except RuntimeError:
@@ -235,8 +239,11 @@ class SlamApp(AppWidgets):
 
     def pause(self) -> None:
         """Stop a background run after the current frame."""
+        was_running = self._running
         self._running = False
         self._set_run_button()
+        if was_running and not self.slam.done:
+            self._status(f"paused after frame {len(self.slam.records) - 1}; Run goes on, Step does one frame")
 
     @property
     def running(self) -> bool:
@@ -283,6 +290,7 @@ class SlamApp(AppWidgets):
         self._showing_run = None
         self._clear_run_views()
         self.view.update(self.slam)
+        self._show_map(snapshot=False)
         self._refresh_all()
         self._status(f"reset: {len(self.slam)} frames of {self.source_spec} with the new settings")
 
@@ -290,6 +298,7 @@ class SlamApp(AppWidgets):
         """Forget what belonged to the discarded run: the keyframe-match picture and its label, the clip
         range, the tracked point; the match pair follows the newest keyframes again."""
         self.m_image.value = b""
+        self.m_image.layout.display = "none"
         self.m_label.value = ""
         self._auto_pair = True
         with self._holding_view_events():
@@ -300,12 +309,20 @@ class SlamApp(AppWidgets):
         self.view.configure(clip=None, track_point=-1)
         self.v_track_info.value = ""
 
+    def _show_map(self, snapshot: bool) -> None:
+        """The live 3D view in the app; with ``snapshot`` it also holds the current scene frozen, which a
+        saved notebook (with its widget state) shows when no kernel serves the live view."""
+        html_ = self.view.iframe_html(self.map_height, snapshot=snapshot)
+        if self.map_html.value != html_:
+            self.map_html.value = html_
+
     def _finish(self) -> None:
         if not self.slam.finished:
             self.slam.finish()  # global BA: every pose moves; the view redraws the frames at their final poses
             self._reproj = self._reprojection_error()
             self.view.update(self.slam)
             self.view.reset_camera()
+            self._show_map(snapshot=True)
             self._refresh_all()
             self._status("done: the last global bundle adjustment ran; Save writes the map and trajectory")
 
@@ -322,6 +339,7 @@ class SlamApp(AppWidgets):
         self.pause()
         stats = self.view.load_run(run_dir)
         self._showing_run = run_dir
+        self._show_map(snapshot=True)
         self._refresh_view_controls()
         self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
         self._status(f"showing the saved run {run_dir} ({stats.points} points, {stats.keyframes} keyframes); "
@@ -332,8 +350,8 @@ class SlamApp(AppWidgets):
         path = Path(path or Path(self.w_out.value) / "map.html")
         n = self._summary()
         run = self._showing_run if self._showing_run is not None else self.source_spec
-        caption = (f"{run}: {n['frames']} frames, {n['keyframes']} keyframes, {n['points']} points. "
-                   f"{legend_text()}")
+        caption = (f"{run}: {n['frames']} frames, {n['keyframes']} keyframes, {n['points']} points; "
+                   "drag to orbit, scroll to zoom")
         self.view.export_html(path, title=f"slamkit map: {run}", caption=caption)
         self._status(f"3D view exported to {path}")
         return path
@@ -382,6 +400,9 @@ class SlamApp(AppWidgets):
         self._refresh_frames(result)
         self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
         self._show_pending()
+        if not self._running and not self.slam.done:
+            self._status(f"stepped to frame {result.frame_index}: {result.status}"
+                         + (" (keyframe)" if result.is_keyframe else ""))
 
     def _refresh_all(self) -> None:
         self._refresh_view_controls()
@@ -393,14 +414,21 @@ class SlamApp(AppWidgets):
         slam = self.slam
         m = slam.slam_map
         kf_id = slam.last_keyframe if slam.segment is not None else -1
+        if m is not None and kf_id not in m.keyframes and len(m.keyframes):
+            kf_id = max(m.keyframes, key=lambda k: m.keyframes[k].frame_index)  # the newest keyframe of the map
         kf = m.keyframes.get(kf_id) if m is not None else None
-        if kf is not None and kf.thumbnail is not None:
-            self.f_kf.value = fv.encode_image(kf.thumbnail)
+        if kf is not None:
+            thumb = kf.thumbnail
+            if thumb is None:  # none kept (config.thumbnail_width = 0, or an initialization keyframe): the frame
+                thumb = slam.source[int(slam.indices[kf.frame_index])].color
+            self.f_kf.value = fv.encode_image(fv.fit_width(thumb, 240)[0])
             self.f_kf_label.value = (f'<span class="slamkit-keyframe">keyframe image id <b>{kf_id}</b> '
-                                     f'(frame {kf.frame_index}, t={kf.timestamp:.3f} s)</span>')
+                                     f'(frame {kf.frame_index}, t={kf.timestamp:.3f} s; '
+                                     f'{m.num_keyframes} keyframes in the map)</span>')
         else:
             self.f_kf.value = fv.encode_image(fv.placeholder("no keyframe yet", (240, 180)))
-            self.f_kf_label.value = "initializing" if result is not None else ""
+            self.f_kf_label.value = ("initializing: no map yet" if result is not None and m is None
+                                     else "no keyframe in this map yet" if result is not None else "")
         frame = slam.last_frame
         if frame is not None and result is not None and frame.index == result.frame_index:
             ref, cur = self.flow_pairs
@@ -492,6 +520,7 @@ class SlamApp(AppWidgets):
         pairs = fv.keyframe_matches(m, a, b)
         img = fv.draw_matches(im1, k1.features.keypoints, im2, k2.features.keypoints, pairs, width=960)
         self.m_image.value = fv.encode_image(img)
+        self.m_image.layout.display = None
         self.m_label.value = (f"keyframes {a} (frame {k1.frame_index}) and {b} (frame {k2.frame_index}): "
                               f"{len(pairs)} keypoints observe the same 3D points"
                               + (" (300 drawn)" if len(pairs) > 300 else ""))

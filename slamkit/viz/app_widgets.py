@@ -172,7 +172,7 @@ class AppWidgets:
         self.m_kf2 = W.Dropdown(options=[], layout=W.Layout(width="110px"))
         self.b_matches = W.Button(description="Draw matches", icon="random", layout=W.Layout(width="160px"),
                                   tooltip="the keypoints the two keyframes share through 3D points")
-        self.m_image = W.Image(format="jpeg", layout=W.Layout(width="640px"))
+        self.m_image = W.Image(format="jpeg", layout=W.Layout(width="640px", display="none"))  # shown once drawn
         self.m_label = W.HTML()
 
     def _layout(self) -> W.VBox:

@@ -87,12 +87,13 @@ class FeatureComparison:
         return self.epipolar_px < self.tolerance_px
 
     def row(self) -> dict:
-        """A table row: counts, the fraction of matches consistent with ground truth, the median distance."""
+        """A table row: keypoints in image 1 / image 2, matches, those within the tolerance of their epipolar
+        line (count and fraction), the median distance to it (pixels), the time."""
         m = len(self.pairs)
-        return {"features": self.name, "keypoints": f"{len(self.keypoints1)} / {len(self.keypoints2)}",
+        return {"features": self.name, "keypoints 1 / 2": f"{len(self.keypoints1)} / {len(self.keypoints2)}",
                 "matches": m, "epipolar inliers": int(self.inliers.sum()),
                 "inlier ratio": float(self.inliers.mean()) if m else float("nan"),
-                "median epipolar distance (px)": float(np.median(self.epipolar_px)) if m else float("nan"),
+                "median dist. (px)": float(np.median(self.epipolar_px)) if m else float("nan"),
                 "time (ms)": 1e3 * self.seconds}
 
 
@@ -151,48 +152,72 @@ def learned_pipelines() -> tuple[list[str], str]:
 
 @dataclass
 class FlowScores:
-    """The flow score of each frame after a keyframe, as the keyframe selector computes it."""
+    """The flow score of each frame against the keyframe before it, as the keyframe selector computes it:
+    when the rule fires, that frame becomes the keyframe the next frames are measured against."""
 
     frame_indices: np.ndarray
-    """(F,) source indices of the frames compared with the keyframe."""
+    """(F,) source indices of the frames scored."""
     scores: np.ndarray
-    """(F,) dimensionless: median |dx| / fx + median |dy| / fy of the matches to the keyframe."""
+    """(F,) dimensionless: median |dx| / fx + median |dy| / fy of the matches to the current keyframe."""
     matches: np.ndarray
-    """(F,) matches to the keyframe."""
+    """(F,) matches to the current keyframe."""
     threshold: float
     min_matches: int
     flows: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     """Per frame: (keyframe pixels (M, 2), current pixels (M, 2)) of the matches."""
+    references: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
+    """(F,) source index of the keyframe each frame was measured against."""
+
+    @property
+    def due(self) -> np.ndarray:
+        """(F,) bool: the rule makes the frame a keyframe (flow > threshold with enough matches)."""
+        return (self.scores > self.threshold) & (self.matches >= self.min_matches)
+
+    @property
+    def keyframes(self) -> list[int]:
+        """Source indices of the frames the rule makes keyframes, in order."""
+        return [int(i) for i in self.frame_indices[self.due]]
 
     @property
     def first_keyframe(self) -> int | None:
-        """Source index of the first frame the rule makes a keyframe (flow > threshold with enough matches)."""
-        due = (self.scores > self.threshold) & (self.matches >= self.min_matches)
-        return int(self.frame_indices[np.argmax(due)]) if due.any() else None
+        """Source index of the first frame the rule makes a keyframe (None if none)."""
+        return self.keyframes[0] if self.keyframes else None
 
 
 def flow_scores(source, keyframe_index: int, frame_indices, features: str = "orb",
                 config: SlamConfig | None = None) -> FlowScores:
-    """The flow score of ``frame_indices`` against the keyframe ``keyframe_index`` (source indices), matched
-    by descriptors (the pipeline matches through the local map instead; the score is the same formula)."""
+    """The flow score of ``frame_indices`` (increasing source indices) against the keyframe before them,
+    starting from ``keyframe_index``; a frame the rule makes a keyframe is the reference of the frames after
+    it, as in the pipeline. Matched by descriptors (the pipeline matches through the local map instead; the
+    score is the same formula)."""
     config = config or SlamConfig().with_overrides(features=features)
     extractor, _, _ = _pipeline(config.feature_pipeline)
-    kf = source[keyframe_index]
-    fk = extractor.extract(kf.gray)
-    xk = kf.camera.undistort_points(fk.keypoints)
-    cam = kf.camera
-    scores, matches, flows = [], [], []
+    kcfg = config.keyframes
+
+    def keyframe(index: int):
+        frame = source[int(index)]
+        f = extractor.extract(frame.gray)
+        return f, frame.camera.undistort_points(f.keypoints)
+
+    ref = int(keyframe_index)
+    fk, xk = keyframe(ref)
+    cam = source[ref].camera
+    scores, matches, flows, refs = [], [], [], []
     for i in frame_indices:
         fr = source[int(i)]
         fc = extractor.extract(fr.gray)
         pairs = match_descriptors(fk.descriptors, fc.descriptors, fk.binary, config.tracker.matching)
-        a, b = xk[pairs[:, 0]], fr.camera.undistort_points(fc.keypoints)[pairs[:, 1]]
-        scores.append(flow_score(a, b, cam.fx, cam.fy))
+        xc = fr.camera.undistort_points(fc.keypoints)
+        a, b = xk[pairs[:, 0]], xc[pairs[:, 1]]
+        score = flow_score(a, b, cam.fx, cam.fy)
+        scores.append(score)
         matches.append(len(pairs))
         flows.append((a, b))
-    kcfg = config.keyframes
+        refs.append(ref)
+        if score > kcfg.flow_threshold and len(pairs) >= kcfg.min_tracked_matches:
+            ref, fk, xk = int(i), fc, xc  # this frame is the new keyframe
     return FlowScores(np.asarray(list(frame_indices), np.int64), np.asarray(scores), np.asarray(matches),
-                      kcfg.flow_threshold, kcfg.min_tracked_matches, flows)
+                      kcfg.flow_threshold, kcfg.min_tracked_matches, flows, np.asarray(refs, np.int64))
 
 
 # ---------------------------------------------------------------------------------------------- two views
@@ -324,6 +349,86 @@ def perturb_and_adjust(rec: pycolmap.Reconstruction, sigma: float, iterations: i
     return AdjustmentDemo(before, after, moved_before, moved_after, summary.brief_report())
 
 
+# ---------------------------------------------------------------------------------------------- loop closure
+
+
+@dataclass
+class LoopCorrection:
+    """What one loop closure changed, against ground truth: the trajectory just before the closing step and
+    just after it, each Sim(3)-aligned to the ground truth over the same frames (those posed before).
+
+    ``*_xyz``: (N, 3) metres, aligned; ``gt_xyz`` (N, 3) the ground truth of those frames; ``query`` and
+    ``candidate``: indices into them of the newest frame before the closure and of the candidate keyframe's
+    frame (the place returned to); ``gap_*``: metres between those two frames' positions (ground truth,
+    the map before, the map after); ``ate_*``: ATE RMSE over the N frames, metres."""
+
+    gt_xyz: np.ndarray
+    before_xyz: np.ndarray
+    after_xyz: np.ndarray
+    query: int
+    candidate: int
+    query_frame: int
+    candidate_frame: int
+    gap_gt: float
+    gap_before: float
+    gap_after: float
+    ate_before: float
+    ate_after: float
+
+
+def loop_correction(gt, before, after, closure, frame_times: np.ndarray) -> LoopCorrection:
+    """Compare the trajectories ``before`` and ``after`` a loop closure (``slam.trajectory()`` at the steps
+    around it) with the ground truth ``gt``; ``closure``: the step's ``loop_closure``; ``frame_times``:
+    (F,) the timestamp of every frame index (to find the candidate's frame on the trajectories)."""
+    from ..eval import ate
+
+    common = np.isin(np.round(after.timestamps, 6), np.round(before.timestamps, 6))
+    after = after.subset(common)
+    ra, rb = ate(gt, after), ate(gt, before)
+    a_xyz = ra.alignment.apply(after.subset(ra.idx_est)).positions
+    b_xyz = rb.alignment.apply(before.subset(rb.idx_est)).positions
+    g_xyz = gt.positions[ra.idx_gt]
+    t = after.timestamps[ra.idx_est]
+    n = min(len(a_xyz), len(b_xyz))
+    q = n - 1  # the newest frame posed before the closing step
+    c = int(np.argmin(np.abs(t[:n] - frame_times[int(closure.candidate_frame)])))
+    qf = int(np.argmin(np.abs(frame_times - t[q])))
+
+    def gap(x):
+        return float(np.linalg.norm(x[q] - x[c]))
+
+    return LoopCorrection(g_xyz[:n], b_xyz[:n], a_xyz[:n], q, c, qf, int(closure.candidate_frame),
+                          gap(g_xyz), gap(b_xyz), gap(a_xyz), rb.rmse, ra.rmse)
+
+
+def plot_loop_correction(ax, lc: LoopCorrection, unit: str = "m") -> None:
+    """Top view (axes in metres) of the ground truth, the map before the loop closure and after it, and the
+    closure: the two frames the loop joins, before (dashed) and after (thick) the correction; the gaps and
+    ATE in the legend and title in ``unit`` ("m" or "cm")."""
+    k = {"m": 1.0, "cm": 100.0}[unit]
+    from ..eval.plots import view_axes
+    from .scene import LOOP_COLOR
+
+    (i, j, name), _ = view_axes(lc.gt_xyz)
+    ax.plot(lc.gt_xyz[:, i], lc.gt_xyz[:, j], color="0.3", lw=2.5, alpha=0.5, label="ground truth")
+    ax.plot(lc.before_xyz[:, i], lc.before_xyz[:, j], color="tab:red", lw=1.2, label="map before the loop closure")
+    ax.plot(lc.after_xyz[:, i], lc.after_xyz[:, j], color="tab:blue", lw=1.2, label="map after the correction")
+    for xyz, style, lw, label in ((lc.before_xyz, "--", 2, f"frames {lc.query_frame} and {lc.candidate_frame} "
+                                   f"before: {k * lc.gap_before:.3g} {unit} apart"),
+                                  (lc.after_xyz, "-", 5, f"after: {k * lc.gap_after:.3g} {unit} apart "
+                                   f"(truth: {k * lc.gap_gt:.3g} {unit})")):
+        ax.plot(xyz[[lc.query, lc.candidate], i], xyz[[lc.query, lc.candidate], j], style, color=LOOP_COLOR,
+                lw=lw, label="loop closure: " + label if style == "--" else label)
+    ax.plot(*lc.gt_xyz[0, [i, j]], "o", color="green", ms=8, label="start")
+    ax.set_xlabel("xyz"[i] + " [m]")
+    ax.set_ylabel("xyz"[j] + " [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(alpha=0.3)
+    ax.set_title(f"{name}, Sim(3)-aligned: ATE {k * lc.ate_before:.3g} {unit} before, "
+                 f"{k * lc.ate_after:.3g} {unit} after")
+    ax.legend(fontsize=8, loc="best")
+
+
 # ---------------------------------------------------------------------------------------------- drawing
 
 
@@ -345,4 +450,5 @@ def plot_matches(ax, frame1: Frame, frame2: Frame, comparison: FeatureComparison
 
 __all__ = ["plot_matches", "skew", "relative_pose", "fundamental_from_poses", "epipolar_distances", "FeatureComparison",
            "detect_and_match", "compare_features", "learned_pipelines", "FlowScores", "flow_scores", "TwoView",
-           "triangulation_angles", "two_view", "reprojection_errors", "AdjustmentDemo", "perturb_and_adjust"]
+           "triangulation_angles", "two_view", "reprojection_errors", "AdjustmentDemo", "perturb_and_adjust",
+           "LoopCorrection", "loop_correction", "plot_loop_correction"]

@@ -34,7 +34,7 @@ from IPython.display import HTML
 
 from ..io import atomic_write_text
 from .diff import KeyframeChanges, PointsRead, diff_keyframes, diff_points
-from .scene import (BACKGROUND_RADIUS, CURRENT_COLOR, DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, TRACK_COLOR,
+from .scene import (BACKGROUND_RADIUS, CURRENT_COLOR, DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, LOOP_COLOR, TRACK_COLOR,
                     display_from_map, hex_to_rgb255, recency_colors)
 from .sender import SceneSender
 from .server import MeshcatServer, ViewerError
@@ -57,14 +57,50 @@ def legend_text() -> str:
             "yellow to red (last) · current frame blue · selected track magenta · loop closures cyan · drag to orbit, scroll to zoom")
 
 
-def captioned_html(page: str, title: str, caption: str) -> str:
+def _css(rgb: tuple[float, float, float]) -> str:
+    return "#%02x%02x%02x" % tuple(int(round(255 * c)) for c in rgb)
+
+
+LEGEND = (
+    ("linear-gradient(90deg,{},{},{})".format(*(_css(c) for c in recency_colors(np.array([0.0, 0.5, 1.0])))),
+     "keyframes and path: first → last"),
+    (_css(CURRENT_COLOR), "current frame"),
+    (_css(TRACK_COLOR), "selected track"),
+    (_css(LOOP_COLOR), "loop closure"),
+)
+"""(CSS colour, meaning) of each colour of the 3D view besides the points (in their image colours)."""
+
+
+def legend_html() -> str:
+    """The colour legend of the 3D view as a small HTML box (swatches and words)."""
+    items = "".join(f'<span style="white-space:nowrap;margin-right:8px"><span style="display:inline-block;'
+                    f'width:18px;height:4px;vertical-align:middle;background:{css}"></span> {html.escape(text)}</span> '
+                    for css, text in LEGEND)
+    return (f'<div class="slamkit-legend" style="font:11px sans-serif;line-height:1.5">{items}'
+            '<span style="white-space:nowrap">points: their image colours</span></div>')
+
+
+def captioned_html(page: str, title: str, caption: str, legend: bool = True) -> str:
     """meshcat's static page with ``title`` instead of "MeshCat" and ``caption`` (plain text, escaped) in a
-    box over the top left of the viewer."""
+    box over the top left of the viewer, followed by the colour legend (:func:`legend_html`) when ``legend``."""
     page = page.replace("<title>MeshCat</title>", f"<title>{html.escape(title)}</title>", 1)
     box = (f'<div class="slamkit-caption" style="position:fixed;top:8px;left:8px;max-width:45%;z-index:10;'
            f'font:12px sans-serif;background:rgba(255,255,255,0.85);padding:6px 10px;border-radius:4px">'
-           f'<b>{html.escape(title)}</b><br>{html.escape(caption)}</div>')
+           f'<b>{html.escape(title)}</b><br>{html.escape(caption)}{legend_html() if legend else ""}</div>')
     return page.replace("<body>", "<body>" + box, 1)
+
+
+NO_KERNEL_TEXT = ("The live 3D view needs the running kernel (it is served by this notebook's Python process); "
+                  "run the notebook to see it.")
+"""What a saved live view shows without a kernel when no snapshot was kept."""
+
+
+def snapshot_iframe(page: str, width: str, height: int, lazy: bool = False) -> str:
+    """``page`` (a whole HTML document) in an ``<iframe srcdoc>``: renders with no server and no kernel,
+    in JupyterLab, ``jupyter nbconvert --to html`` and notebook viewers that keep iframes."""
+    lazy_attr = ' loading="lazy"' if lazy else ""
+    return (f'<iframe class="slamkit-snapshot" srcdoc="{html.escape(page, quote=True)}"{lazy_attr}'
+            f' style="width:{width};height:{int(height)}px;border:none"></iframe>')
 
 
 @dataclass
@@ -142,6 +178,8 @@ class MapView:
         self.stats = UpdateStats()
         self.closed = False
         self._map = ShownMap()
+        self._outputs: list[tuple[Any, int]] = []
+        """(display handle, height) of every live view :meth:`display` showed."""
         self._out.send_scene_settings(self.settings)
 
     # ------------------------------------------------------------------ lifecycle
@@ -164,22 +202,53 @@ class MapView:
     def url(self) -> str:
         return self._out.url
 
-    def iframe_html(self, height: int = 480) -> str:
-        """An ``<iframe>`` showing the live viewer (for an ipywidgets HTML widget), ``height`` pixels high and
-        :attr:`aspect` times as wide (the home camera frames the map for that shape)."""
+    def iframe_html(self, height: int = 480, snapshot: bool = False) -> str:
+        """The live viewer (for an ipywidgets HTML widget or a cell output), ``height`` pixels high and
+        :attr:`aspect` times as wide (the home camera frames the map for that shape), with the colour legend.
+
+        The viewer is an ``<object>`` loading the live page from this kernel's server; when it cannot load
+        (a saved notebook reopened without the kernel, ``nbconvert --to html``) the browser shows what the
+        object holds instead: with ``snapshot``, the current scene frozen (:meth:`snapshot_html`), else a
+        sentence saying the view needs the kernel."""
         width = int(round(height * self.aspect))
-        return (f'<div style="height:{int(height)}px;width:{width}px;max-width:100%;overflow:hidden;resize:both">'
-                f'<iframe class="slamkit-map" src="{self.url}" style="width:100%;height:100%;border:none">'
-                f'</iframe></div>')
+        inner = (snapshot_iframe(self.static_html(legend=False), "100%", height, lazy=True) if snapshot else
+                 f'<div class="slamkit-no-kernel" style="padding:2em;font:13px sans-serif;color:#555">'
+                 f'{html.escape(NO_KERNEL_TEXT)}</div>')
+        return (f'<div class="slamkit-map-box" style="height:{int(height)}px;width:{width}px;max-width:100%;'
+                f'overflow:hidden;resize:both;position:relative">'
+                f'<object class="slamkit-map" type="text/html" data="{self.url}" '
+                f'style="width:100%;height:100%;border:none">{inner}</object>'
+                f'<div style="position:absolute;bottom:4px;left:4px;right:4px;background:rgba(255,255,255,0.8);'
+                f'padding:2px 6px;border-radius:3px;pointer-events:none">{legend_html()}</div></div>')
 
-    def display(self, height: int = 480) -> HTML:
-        """The live viewer, inline in a notebook (the last expression of a cell)."""
-        return HTML(self.iframe_html(height))
+    def display(self, height: int = 480) -> None:
+        """Show the live viewer in the notebook (a cell output that :meth:`keep_snapshot` can update)."""
+        from IPython.display import display
+        self._outputs.append((display(HTML(self.iframe_html(height)), display_id=True), int(height)))
 
-    def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None) -> str:
+    def keep_snapshot(self) -> int:
+        """Store the current scene in every output :meth:`display` made, as the picture a saved notebook
+        shows without a kernel (the live view stays live while the kernel runs; its page reloads once).
+        Call it when the map is final, e.g. after ``slam.run()``; returns the outputs updated."""
+        for handle, height in self._outputs:
+            handle.update(HTML(self.iframe_html(height, snapshot=True)))
+        return len(self._outputs)
+
+    def snapshot_html(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> str:
+        """The current scene frozen in an ``<iframe srcdoc>`` (:meth:`static_html`, legend included):
+        needs no server and no kernel."""
+        return snapshot_iframe(self.static_html(title, caption), f"{int(round(height * self.aspect))}px", height)
+
+    def snapshot(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> HTML:
+        """:meth:`snapshot_html` as a cell output (the last expression of a cell)."""
+        return HTML(self.snapshot_html(height, title, caption))
+
+    def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None, legend: bool = True) -> str:
         """The current scene as one self-contained HTML page (the viewer's JavaScript included), titled
-        ``title``, with ``caption`` (default: :func:`legend_text`) over the top left of the viewer."""
-        return captioned_html(self._out.static_html(), title, legend_text() if caption is None else caption)
+        ``title``, with ``caption`` (default: "drag to orbit, scroll to zoom") and the colour legend (unless
+        ``legend`` is False: :meth:`iframe_html` draws its own) over the top left of the viewer."""
+        return captioned_html(self._out.static_html(), title,
+                              "drag to orbit, scroll to zoom" if caption is None else caption, legend)
 
     def export_html(self, path: str | os.PathLike, title: str = DEFAULT_TITLE, caption: str | None = None) -> Path:
         """Write :meth:`static_html` to ``path`` (atomically) for reports; opens from file:// offline."""
@@ -427,7 +496,7 @@ class MapView:
         return display_from_map(self._map.fit)
 
 
-__all__ = ["MapView", "MapState", "legend_text", "captioned_html", "DEFAULT_TITLE", "ViewSettings", "UpdateStats",
+__all__ = ["MapView", "MapState", "legend_text", "legend_html", "LEGEND", "captioned_html", "snapshot_iframe", "DEFAULT_TITLE", "ViewSettings", "UpdateStats",
            "state_from_slam", "state_from_run",
            "recency_colors", "DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR",
            "TRACK_COLOR", "hex_to_rgb255"]

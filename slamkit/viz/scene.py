@@ -321,6 +321,18 @@ def loop_edges_object(edges: np.ndarray) -> mg.LineSegments:
     return lines_object(v, np.tile(np.array(LOOP_COLOR, np.float32), (len(v), 1)))
 
 
+LOOP_RGB = tuple(int(round(255 * c)) for c in LOOP_COLOR)
+
+
+def loop_band_object(edges: np.ndarray, size: float, per_edge: int = 48) -> mg.Points:
+    """Loop edges drawn to stand out (WebGL lines are 1 px wide whatever their width): ``per_edge`` large
+    points in LOOP_COLOR along each edge (L, 2, 3), map units, L >= 1; ``size`` in viewer units."""
+    e = np.asarray(edges, np.float64).reshape(-1, 2, 3)
+    f = np.linspace(0.0, 1.0, int(per_edge))[None, :, None]
+    xyz = (e[:, :1] * (1 - f) + e[:, 1:] * f).reshape(-1, 3)
+    return points_object(xyz, np.tile(np.array(LOOP_RGB), (len(xyz), 1)), size)
+
+
 def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
     """The tracked point xyz (3,) as a single large point."""
     return points_object(xyz[None], np.array([TRACK_POINT_RGB]), size)
@@ -333,4 +345,4 @@ __all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURREN
            "FIT_PERCENTILES",
            "display_from_map", "keyframes_object", "path_object", "path_vertex_times", "directions_object",
            "current_frame_object", "track_lines_object", "track_point_object",
-           "loop_edges_object"]
+           "loop_edges_object", "loop_band_object"]

@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 
 from .scene import (BACKGROUND_RADIUS, background_object, current_frame_object, directions_object, display_from_map,
-                    geometry_bytes, home_camera_position, keyframes_object, loop_edges_object, path_object,
-                    path_vertex_times,
-                    points_object, recency_colors, track_lines_object, track_point_object)
+                    geometry_bytes, home_camera_position, keyframes_object, loop_band_object, loop_edges_object,
+                    path_object, path_vertex_times, points_object, recency_colors, track_lines_object,
+                    track_point_object)
 from .settings import ViewSettings
 from .shown import ShownMap
 
@@ -156,8 +156,11 @@ class SceneSender:
         self.counts["path"] = int(len(c))
         if len(shown.loop_edges):  # loop closures: drawn with the path (shown and hidden with it)
             self.set_object("path/loops", loop_edges_object(shown.loop_edges))
+            self.set_object("path/loop_band", loop_band_object(shown.loop_edges,
+                                                               6 * shown.point_size_units(settings)))
         else:
             self.delete("path/loops")
+            self.delete("path/loop_band")
         self.counts["loops"] = int(len(shown.loop_edges))
 
     def send_directions(self, shown: ShownMap, settings: ViewSettings) -> None:

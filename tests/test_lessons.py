@@ -1,0 +1,67 @@
+"""The lesson computations of notebooks 02, 04 and 05 against exact truth (cheap: no SLAM run)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from slamkit.types import Trajectory
+from slamkit.viz import lessons
+
+
+def _poses(xyz: np.ndarray) -> np.ndarray:
+    T = np.tile(np.eye(4), (len(xyz), 1, 1))
+    T[:, :3, 3] = xyz
+    return T
+
+
+def test_loop_correction_measures_the_gap_the_loop_closes():
+    """A square loop of 40 m a side driven once and a bit: the map before the closure drifted (its heading
+    turns 0.3 deg a frame too much, so the end is far from the start), after the closure it is the truth.
+    The gap between the newest frame and the start must be large before, the truth's after."""
+    n = 170
+    s = np.arange(n) * 1.0  # metres along the path
+    side = 40.0
+    def square(s):
+        s = s % (4 * side)
+        k, r = np.divmod(s, side)
+        corners = np.array([[0, 0], [side, 0], [side, side], [0, side]])
+        dirs = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])
+        return corners[k.astype(int)] + dirs[k.astype(int)] * r[:, None]
+    xy = square(s)
+    gt_xyz = np.c_[xy, np.zeros(n)]
+    t = np.arange(n) * 0.1
+    step = np.diff(xy, axis=0)
+    yaw = np.radians(0.3) * np.arange(1, n)  # drift: the heading turns 0.3 deg a frame too much
+    step = np.c_[np.cos(yaw) * step[:, 0] - np.sin(yaw) * step[:, 1], np.sin(yaw) * step[:, 0] + np.cos(yaw) * step[:, 1]]
+    drift = np.c_[np.vstack([[0.0, 0.0], np.cumsum(step, axis=0)]), np.zeros(n)]
+    gt = Trajectory(t, _poses(gt_xyz))
+    before = Trajectory(t[:-1], _poses(drift[:-1]))  # the closing step's frame is not posed yet
+    after = Trajectory(t, _poses(gt_xyz))
+    closure = SimpleNamespace(candidate_frame=2, query_frame=n - 1)
+    lc = lessons.loop_correction(gt, before, after, closure, t)
+    q, c = n - 2, 2
+    assert (lc.query, lc.candidate, lc.query_frame, lc.candidate_frame) == (q, c, q, c)
+    truth = float(np.linalg.norm(gt_xyz[q] - gt_xyz[c]))
+    assert lc.gap_gt == pytest.approx(truth) and lc.gap_after == pytest.approx(truth, abs=1e-6)
+    assert lc.gap_before > 3 * truth  # the drifted map (aligned as well as it can be) puts the return far away
+    assert lc.ate_after == pytest.approx(0.0, abs=1e-6) and lc.ate_before > 1.0
+    assert len(lc.before_xyz) == len(lc.after_xyz) == len(lc.gt_xyz) == n - 1
+
+
+def test_flow_scores_follow_the_keyframe_rule():
+    """After the rule fires, the next frames are measured against the new keyframe (as the pipeline does):
+    every reference is the source index of a frame the rule made a keyframe, or the first keyframe."""
+    from slamkit.sources import open_source
+
+    src = open_source("default")
+    fs = lessons.flow_scores(src, 0, range(1, 9))
+    assert fs.keyframes and fs.first_keyframe == fs.keyframes[0]
+    assert set(fs.references.tolist()) <= {0, *fs.keyframes}
+    for k in fs.keyframes[:-1]:  # the frame after a keyframe is measured against it, with a small score
+        i = list(fs.frame_indices).index(k) + 1
+        if i < len(fs.frame_indices):
+            assert fs.references[i] == k and fs.scores[i] < fs.threshold
+    assert np.all(fs.scores[fs.due] > fs.threshold)
