@@ -348,7 +348,9 @@ def test_calibration_messages_name_the_command_line_way(tmp_path, capsys):
             open_source(path)
 
 
-def test_an_impossible_init_window_is_explained_on_the_final_line(tmp_path, capsys):
+def test_a_failed_initialization_is_explained_on_the_final_line(tmp_path, capsys):
+    """A window longer than the sequence: the pair is tried when the sequence ends, and why it failed is the
+    summary's last word."""
     folder = write_tum_sequence(synthetic_source("sideways", frames=12, scale=0.25), tmp_path / "seq")
     src = open_tum_sequence(folder)
     src.paths[4].write_bytes(b"\x89PNG\r\n\x1a\n" + b"truncated" * 20)
@@ -358,8 +360,8 @@ def test_an_impossible_init_window_is_explained_on_the_final_line(tmp_path, caps
     line = next(x for x in err if x.startswith("frames "))
     assert "posed 0 (0.0 %)" in line and "1 frame skipped (1 unreadable, e.g. frame 4: " in line, line
     assert src.paths[4].name in line
-    assert "no map: the sequence has 12 frames, fewer than the initialization window " \
-           "(initializer.init_frames = 100000)" in line
+    assert "no map: no initial pair found; last attempt: no initial pair in frames 0-11 (" in line, line
+    assert line.endswith("; the sequence ended"), line
 
 
 def test_resume_with_other_intrinsics_is_refused(tmp_path, capsys):
