@@ -31,6 +31,7 @@ from .io.trajectory import check_input_file
 from .pipeline import Slam
 from .runner import ABORTED, RunOutcome, run_to_folder, summary_line
 from .sources import open_source
+from .stages.mapper import MAPPER_METHODS
 
 
 def _add_config_args(p: argparse.ArgumentParser) -> None:
@@ -46,6 +47,9 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--min-tracked-matches", type=int, help="keyframe needs this many tracked matches (50)")
     g.add_argument("--init-frames", type=int, help="initialization window N (20)")
     g.add_argument("--init-strategy", choices=["best_pair", "first_inliers"])
+    g.add_argument("--mapper", choices=list(MAPPER_METHODS),
+                   help="how keyframes make map points: colmap (COLMAP's triangulator, default) or local "
+                        "(ORB-SLAM's local mapping: created, checked, culled and fused)")
     g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
                    help="intrinsics in pixels instead of the source's: a focal length (principal point at the "
                         "centre) or fx,fy,cx,cy with optional OpenCV distortion; for videos and image folders, "
@@ -65,8 +69,9 @@ def _overrides_from_args(args: argparse.Namespace) -> dict:
     """The configuration values given explicitly on the command line (options and --set), preset excluded."""
     over = {k: getattr(args, k) for k in ("features", "matcher", "weights_dir", "num_features", "flow_threshold",
                                           "min_tracked_matches",
-                                          "init_frames", "init_strategy", "camera", "frame_skip", "max_frames", "seed")
-            if getattr(args, k) is not None}
+                                          "init_frames", "init_strategy", "mapper", "camera", "frame_skip", "max_frames",
+                                          "seed")
+            if getattr(args, k, None) is not None}
     if args.camera is not None:  # "" given explicitly is a mistake, not "the source's own"
         parse_camera_values(args.camera, "--camera")
     for item in args.set:

@@ -185,6 +185,7 @@ ALIASES = {
     "min_tracked_matches": "keyframes.min_tracked_matches",
     "init_frames": "initializer.init_frames",
     "init_strategy": "initializer.strategy",
+    "mapper": "mapper.method",
     "min_inliers": "tracker.min_inliers",
     "local_window": "ba.local_window",
 }

@@ -37,6 +37,7 @@ from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, guided_match
 from ..features.epipolar import epipolar_match
 from ..map import SlamMap, rigid_from_matrix, shared_observations
+from .mapper import MappingResult
 from ..state import RecentPoints
 
 CHI2_2DOF = 5.991
@@ -98,31 +99,18 @@ class LocalMappingConfig:
 
 
 @dataclass(frozen=True)
-class LocalMappingResult:
-    """What local mapping did with a keyframe (the mapper's result with the counts of this stage)."""
+class LocalMappingResult(MappingResult):
+    """What local mapping did with a keyframe: the mapper's result (``new_points`` = ``created``) with the
+    counts of this stage."""
 
-    status: str
-    """"registered" or "rejected"."""
-    reason: str
-    image_id: int
-    num_points: int
-    """Map points the keyframe observes."""
-    new_points: int
-    """Points created (= ``created``; the COLMAP mapper's name)."""
-    neighbors: tuple[int, ...]
-    num_correspondences: int
     created: int = 0
+    """Points created from the new keyframe and its covisible keyframes."""
     culled: int = 0
     """Recent points removed before the new points were created."""
     fused: int = 0
     """Duplicated points merged."""
     observations_added: int = 0
     """Observations fusion added to existing points."""
-    starved: bool = False
-
-    @property
-    def registered(self) -> bool:
-        return self.status == "registered"
 
 
 def keypoint_scales(features) -> np.ndarray:
@@ -242,11 +230,12 @@ class LocalMapper:
                   f"{culled} recent points culled")
         if n_points < self.min_keyframe_points:
             slam_map.deregister(iid)
-            return LocalMappingResult("rejected", f"sees {n_points} map points < {self.min_keyframe_points}", iid,
-                                      n_points, len(created), tuple(neighbors), total, len(created), culled, fused,
-                                      added)
-        return LocalMappingResult("registered", counts, iid, n_points, len(created), tuple(neighbors), total,
-                                  len(created), culled, fused, added)
+            status, reason = "rejected", f"sees {n_points} map points < {self.min_keyframe_points}"
+        else:
+            status, reason = "registered", counts
+        return LocalMappingResult(status=status, reason=reason, image_id=iid, num_points=n_points,
+                                  new_points=len(created), neighbors=tuple(neighbors), num_correspondences=total,
+                                  created=len(created), culled=culled, fused=fused, observations_added=added)
 
     # ----------------------------------------------------------------- new points
     def _new_points(self, slam_map: SlamMap, n: int, frame: FrameFeatures, T_new: np.ndarray, scales: np.ndarray,

@@ -47,6 +47,11 @@ def describe_step(r: "StepResult") -> str:
         parts.append(f"KEYFRAME ({r.keyframe_reason})" if r.keyframe_reason else "KEYFRAME")
     elif r.keyframe_reason:
         parts.append(f"no keyframe ({r.keyframe_reason})")
+    m = r.mapping
+    if m is not None and hasattr(m, "culled"):  # local mapping's counts (mapper.method = "local")
+        parts.append(f"local mapping: {m.created} points created, {m.culled} recent points culled, "
+                     f"{m.fused} duplicates fused, {m.observations_added} observations added "
+                     f"({len(m.neighbors)} covisible keyframes)")
     parts.append(f"map {r.num_keyframes} keyframes, {r.num_points} points")
     if r.ba:
         parts.append(f"BA: {r.ba}")
