@@ -20,8 +20,10 @@ install: $(VENV)/.installed
 demo: install
 	$(VENV)/bin/slamkit run default --out $(OUT)
 
+# the test files spread over TEST_WORKERS processes (pytest-xdist; 0 runs them in this process)
+TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 bench: install
 	$(PY) benchmarks/bench_slam.py

@@ -17,6 +17,29 @@ if TYPE_CHECKING:  # pragma: no cover
     from .stages.loop_closer import LoopClosure, MergeCandidate
 
 
+@dataclass(frozen=True)
+class MappingResult:
+    """What the mapper did with a keyframe (``stages.mapper``, ``stages.local_mapper``: a subclass with its
+    counts); ``StepResult.mapping``."""
+
+    status: str
+    """"registered" or "rejected"."""
+    reason: str
+    image_id: int
+    num_points: int
+    """Map points the keyframe observes."""
+    new_points: int
+    """Observations added by triangulation (new and continued tracks)."""
+    neighbors: tuple[int, ...]
+    num_correspondences: int
+    starved: bool = False
+    """The keyframe was triangulated again with ``starved_tri_angle_deg`` (see ``starved_points``)."""
+
+    @property
+    def registered(self) -> bool:
+        return self.status == "registered"
+
+
 @dataclass(frozen=True, eq=False)
 class TrackedMatches:
     """The frame's 2D-3D matches to the local map in the tracker's last round (what the pose was refined on).
@@ -96,7 +119,7 @@ class StepResult:
     map_merge: "MergeResult | None" = None
     """The current map segment merged into the earlier one whose place it recognised (``merge_candidate``):
     keyframes and points moved, points fused, the Sim(3)'s scale; or None."""
-    mapping: "Any" = None
+    mapping: MappingResult | None = None
     """What the mapper did with the keyframe (``MappingResult``, or ``LocalMappingResult`` with the points local
     mapping created, culled and fused), or None when the frame did not become one."""
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
+import psutil
 import pytest
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -22,3 +24,22 @@ def shared_data(name: str) -> Path:
 def shared():
     """The :func:`shared_data` helper as a fixture: ``shared("kitti-odometry")``."""
     return shared_data
+
+
+def meshcat_servers() -> set[int]:
+    """PIDs of the running meshcat servers (slamkit's ``_meshcat_server.py``) started from this test process:
+    under pytest-xdist, only those whose environment names this worker (kernels and their servers inherit
+    it), so a check for leaked servers does not see another worker's."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    out = set()
+    for p in psutil.process_iter(["cmdline"]):
+        if not any(str(a).endswith("_meshcat_server.py") for a in (p.info["cmdline"] or [])):
+            continue
+        if worker is not None:
+            try:
+                if p.environ().get("PYTEST_XDIST_WORKER") != worker:
+                    continue
+            except (psutil.NoSuchProcess, psutil.AccessDenied, psutil.ZombieProcess):
+                continue
+        out.add(p.pid)
+    return out

@@ -47,16 +47,13 @@ nbformat = pytest.importorskip("nbformat")
 psutil = pytest.importorskip("psutil")
 PIL = pytest.importorskip("PIL.Image")
 
+from conftest import meshcat_servers  # noqa: E402  (after the skips: psutil is a test extra)
+
 
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def _meshcat_servers() -> set[int]:
-    return {p.pid for p in psutil.process_iter(["cmdline"])
-            if any(str(a).endswith("_meshcat_server.py") for a in (p.info["cmdline"] or []))}
 
 
 @pytest.fixture
@@ -83,7 +80,7 @@ def lab(tmp_path):
     widget_settings.mkdir(parents=True, exist_ok=True)
     (widget_settings / "plugin.jupyterlab-settings").write_text('{"saveState": true}')
     port = _free_port()
-    before = _meshcat_servers()
+    before = meshcat_servers()
     log = open(tmp_path / "jupyter.log", "w")
     proc = subprocess.Popen(jupyter + ["lab", "--no-browser", f"--port={port}", "--ip=127.0.0.1", "--allow-root",
                                        "--IdentityProvider.token=", "--ServerApp.password=",
@@ -109,9 +106,9 @@ def lab(tmp_path):
             proc.kill()
         log.close()
     deadline = time.monotonic() + 15
-    while (_meshcat_servers() - before) and time.monotonic() < deadline:
+    while (meshcat_servers() - before) and time.monotonic() < deadline:
         time.sleep(0.3)
-    assert not (_meshcat_servers() - before), "a meshcat server outlived JupyterLab's kernel"
+    assert not (meshcat_servers() - before), "a meshcat server outlived JupyterLab's kernel"
 
 
 SCENE_JS = """() => {
@@ -215,7 +212,7 @@ def _save_and_stop_kernel(page, lab) -> Path:
     page.evaluate("() => window.jupyterapp.commands.execute('docmanager:save')")
     _wait(lambda: path.stat().st_mtime > mtime and "widget-state" in path.read_text(), 60, "the notebook saved")
     page.evaluate("() => window.jupyterapp.serviceManager.sessions.shutdownAll()")
-    _wait(lambda: not (_meshcat_servers() - lab["before"]), 30, "the kernel's meshcat servers to stop")
+    _wait(lambda: not (meshcat_servers() - lab["before"]), 30, "the kernel's meshcat servers to stop")
     return path
 
 

@@ -20,6 +20,8 @@ nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipykernel")
 psutil = pytest.importorskip("psutil")
 
+from conftest import meshcat_servers  # noqa: E402  (after the skips: psutil is a test extra)
+
 NOTEBOOKS = sorted(p for p in (Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb")
                    if p.stem != "03_ablation")  # executed with its own checks in tests/test_ablate.py
 
@@ -35,15 +37,6 @@ def inject_parameters(nb, values: dict) -> None:
     cell = nbformat.v4.new_code_cell(src)
     cell.metadata["tags"] = ["injected-parameters"]
     nb.cells.insert(idx + 1, cell)
-
-
-def meshcat_servers() -> set[int]:
-    out = set()
-    for p in psutil.process_iter(["cmdline"]):
-        cmd = p.info["cmdline"] or []
-        if any(str(a).endswith("_meshcat_server.py") for a in cmd):
-            out.add(p.pid)
-    return out
 
 
 def test_notebooks_found():

@@ -37,7 +37,7 @@ from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, guided_match
 from ..features.epipolar import epipolar_match
 from ..map import SlamMap, rigid_from_matrix, shared_observations
-from .mapper import MappingResult
+from ..results import MappingResult
 from ..state import RecentPoints
 
 CHI2_2DOF = 5.991

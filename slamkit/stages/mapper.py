@@ -16,6 +16,7 @@ from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..features.epipolar import epipolar_match
 from ..map import SlamMap, rigid_from_matrix
+from ..results import MappingResult
 
 
 MAPPER_METHODS = ("colmap", "local")
@@ -83,26 +84,6 @@ class MapperConfig:
                               f"{self.starved_tri_angle_deg}, {self.min_tri_angle_deg})")
         if self.starved_points < 0:
             raise ConfigError(f"mapper.starved_points must be >= 0 (got {self.starved_points})")
-
-
-@dataclass(frozen=True)
-class MappingResult:
-    status: str
-    """"registered" or "rejected"."""
-    reason: str
-    image_id: int
-    num_points: int
-    """Map points the keyframe observes."""
-    new_points: int
-    """Observations added by triangulation (new and continued tracks)."""
-    neighbors: tuple[int, ...]
-    num_correspondences: int
-    starved: bool = False
-    """The keyframe was triangulated again with ``starved_tri_angle_deg`` (see ``starved_points``)."""
-
-    @property
-    def registered(self) -> bool:
-        return self.status == "registered"
 
 
 def sampson_error_px(x1: np.ndarray, x2: np.ndarray, cam2_from_cam1: np.ndarray, K: np.ndarray) -> np.ndarray:
