@@ -23,6 +23,7 @@ from slamkit.pipeline import Slam
 from slamkit.session import SessionError, _max_point3D_id, find_session, save_session
 from slamkit.sources import open_source
 from slamkit.sources.base import FrameSource
+from slamkit.stages.local_mapper import LocalMapper
 from slamkit.stages.mapper import Mapper
 
 pycolmap.logging.minloglevel = 2
@@ -293,6 +294,24 @@ class FailingMapper(Mapper):
         raise RuntimeError("injected mapper failure")
 
 
+class FailingLocalMapper(LocalMapper):
+    """The same failure in local mapping (``mapper.method = "local"``)."""
+
+    def step(self, *args, **kwargs):
+        super().step(*args, **kwargs)
+        raise RuntimeError("injected mapper failure")
+
+
+def _use_mapper(slam: Slam, failing: bool) -> None:
+    """Give the pipeline the mapper its config uses, failing or not."""
+    c = slam.config
+    if c.mapper.method == "local":
+        slam.local_mapper = (FailingLocalMapper if failing else LocalMapper)(c.local_mapping,
+                                                                           c.mapper.min_keyframe_points)
+    else:
+        slam.mapper = (FailingMapper if failing else Mapper)(c.mapper)
+
+
 def test_a_failing_source_or_stage_loses_nothing_before_it(tmp_path, uninterrupted):
     snapshots = {}
     slam = Slam(FlakySource(open_source(SPEC), fail_at=35), CONFIG,
@@ -309,7 +328,7 @@ def test_a_failing_source_or_stage_loses_nothing_before_it(tmp_path, uninterrupt
     assert len(read_tum(saved / "trajectory_tum.txt")) == len(slam.trajectory()) >= 30
     assert "camera disconnected" in (saved / "frames.csv").read_text().splitlines()[36]
 
-    slam.mapper = FailingMapper(slam.config.mapper)
+    _use_mapper(slam, failing=True)
     with pytest.raises(RuntimeError, match="injected") as info:
         while True:
             slam.step()
@@ -317,7 +336,7 @@ def test_a_failing_source_or_stage_loses_nothing_before_it(tmp_path, uninterrupt
     assert any(f"frame {k}" in note for note in info.value.__notes__)
     assert slam.records[k].status == "error" and "injected" in slam.errors[k]
     np.testing.assert_array_equal(slam.trajectory().poses, snapshots[k - 1].poses)
-    slam.mapper = Mapper(slam.config.mapper)
+    _use_mapper(slam, failing=False)
     slam.save(tmp_path / "after_stage_error")   # saves, and resumes: the state is consistent
     slam = Slam.resume(tmp_path / "after_stage_error", source=slam.source)
     slam.run()
