@@ -169,6 +169,13 @@ def test_stale_temporaries_are_removed_and_a_moved_run_put_back(tmp_path):
     assert (out / "summary.json").read_text() == "{}" and _leftovers(tmp_path, "run") == []
 
 
+def _default_signals() -> None:
+    """In the child, before exec: SIGINT and SIGHUP as in a terminal, even when the tests were started by
+    ``nohup`` or a non-interactive shell (which leave them ignored, and an ignored SIGHUP stays ignored)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+
 class Proc:
     """A ``python -m slamkit.cli`` process whose output lines are collected by threads (never blocks)."""
 
@@ -176,7 +183,7 @@ class Proc:
         self.p = subprocess.Popen([sys.executable, "-m", "slamkit.cli", *args], stdout=subprocess.PIPE,
                                   stderr=subprocess.PIPE, text=True, cwd=REPO,
                                   env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                                  preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+                                  preexec_fn=_default_signals)
         self.lines: queue.Queue = queue.Queue()
         self.out: list[str] = []
         self.err: list[str] = []
