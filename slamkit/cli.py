@@ -71,7 +71,7 @@ def _overrides_from_args(args: argparse.Namespace) -> dict:
                                           "min_tracked_matches",
                                           "init_frames", "init_strategy", "mapper", "camera", "frame_skip", "max_frames",
                                           "seed")
-            if getattr(args, k, None) is not None}
+            if getattr(args, k) is not None}
     if args.camera is not None:  # "" given explicitly is a mistake, not "the source's own"
         parse_camera_values(args.camera, "--camera")
     for item in args.set:

@@ -42,12 +42,12 @@ class InitializerConfig:
     """Largest size of the initialization window N (frames); with ``window_overlap`` the window closes
     earlier when the camera moves fast, and at the end of the sequence it is tried with what it holds."""
     window_overlap: float = 0.0
-    """best_pair's motion window (off by default: measured with local mapping only, benchmarks/HISTORY.md,
-    "Local mapping"; at 0.3 KITTI 07 and 7-Scenes at their natural rates keep the same pair, 3 seeds each, and
-    the driving clip, the street at 1.5 m/frame and the corridor at 0.1 m/frame are posed 100 %): the window is tried as soon as the newest frame shares fewer window matches
-    with the window's first frame than this fraction of what the first two frames share (fast motion: a fixed
-    window of N frames would span so much that the map made from it is out of view by its end). 0: always
-    N frames."""
+    """best_pair's motion window (off by default; benchmarks/HISTORY.md, "Local mapping"): the window is tried
+    as soon as the newest frame shares fewer window matches with the window's first frame than this fraction of
+    what the first two frames share (fast motion: a fixed window of N frames would span so much that the map
+    made from it is out of view by its end). 0: always N frames. At 0.3 KITTI 07 and 7-Scenes at their natural
+    rates keep the same pair (3 seeds each), and the street at 1.5 m/frame and the corridor at 0.1 m/frame are
+    posed 100 % with either mapper (the driving clip: measured with local mapping only)."""
     verify_frames: int = 4
     """The two-view map of a candidate pair must explain up to this many other window frames (the nearest to
     the pair's second frame, after it first): each frame that shares at least ``min_verify_inliers`` window
