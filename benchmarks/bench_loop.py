@@ -27,6 +27,7 @@ Usage::
 
     PYTHONPATH=$PWD nice -n 5 .venv/bin/python benchmarks/bench_loop.py                       # all, 3 + 5 seeds
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_loop.py --cases two-lap --seeds 1 --frames 600
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_loop.py --cases block --seeds 3 --set mapper=colmap
 
 ``loop closing on`` is the default (``loop_closing.enabled`` and ``loop_closing.correct``); "off" sets both false.
 """
@@ -61,14 +62,14 @@ SEEDS = {"two-lap": 3, "block": 2, "kitti-07": 1, "7scenes": 5}
 the hand-held jitter or weave of the path)."""
 
 
-def run_one(task: tuple[str, int, bool, int]) -> dict:
-    """One run: (case, seed, loop closing on, frames of the synthetic case) -> a row."""
+def run_one(task: tuple[str, int, bool, int, dict]) -> dict:
+    """One run: (case, seed, loop closing on, frames of the synthetic case, config overrides) -> a row."""
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
     from slamkit import Slam, SlamConfig, ate, open_source
 
-    case, seed, enabled, frames = task
+    case, seed, enabled, frames, overrides = task
     row = {"case": case, "seed": seed, "loop_closing": enabled, "error": ""}
     spec = CASES[case]["spec"]
     if spec.startswith("synthetic:"):
@@ -79,8 +80,8 @@ def run_one(task: tuple[str, int, bool, int]) -> dict:
         spec = str(DATA / spec)
     try:
         source = open_source(spec, **CASES[case]["kw"])
-        slam = Slam(source, SlamConfig().with_overrides(seed=seed, **{"loop_closing.enabled": enabled,
-                                                                   "loop_closing.correct": enabled}))
+        slam = Slam(source, SlamConfig().with_overrides(seed=seed, **overrides, **{
+            "loop_closing.enabled": enabled, "loop_closing.correct": enabled}))
         t0, times = time.perf_counter(), []
         for _ in slam:
             times.append(time.perf_counter() - t0)
@@ -136,8 +137,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=2000, help="frames of the synthetic two-lap loops (2000)")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--csv", type=Path, default=RESULTS / "bench_loop.csv")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a config override for every run (SlamConfig.with_overrides key, e.g. mapper=colmap); "
+                        "repeatable")
     args = p.parse_args(argv)
-    tasks = [(case, seed, enabled, args.frames) for case in args.cases
+    overrides = {}
+    for kv in args.set:
+        key, sep, value = kv.partition("=")
+        if not sep or not key:
+            p.error(f"--set {kv!r}: expected KEY=VALUE")
+        overrides[key] = value
+    tasks = [(case, seed, enabled, args.frames, overrides) for case in args.cases
              for seed in range(args.seeds or SEEDS[case]) for enabled in (False, True)]
     with mp.get_context("spawn").Pool(args.jobs, maxtasksperchild=1) as pool:
         rows = []
