@@ -137,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=2000, help="frames of the synthetic two-lap loops (2000)")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument("--csv", type=Path, default=RESULTS / "bench_loop.csv")
+    p.add_argument("--loop-closing", choices=["both", "on", "off"], default="both",
+                   help="run with loop closing on, off or both (default)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a config override for every run (SlamConfig.with_overrides key, e.g. mapper=colmap); "
                         "repeatable")
@@ -148,7 +150,8 @@ def main(argv: list[str] | None = None) -> int:
             p.error(f"--set {kv!r}: expected KEY=VALUE")
         overrides[key] = value
     tasks = [(case, seed, enabled, args.frames, overrides) for case in args.cases
-             for seed in range(args.seeds or SEEDS[case]) for enabled in (False, True)]
+             for seed in range(args.seeds or SEEDS[case])
+             for enabled in {"both": (False, True), "on": (True,), "off": (False,)}[args.loop_closing]]
     with mp.get_context("spawn").Pool(args.jobs, maxtasksperchild=1) as pool:
         rows = []
         for row in pool.imap(run_one, tasks):
