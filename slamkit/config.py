@@ -215,7 +215,7 @@ XFEAT_TRACKING: dict[str, Any] = {"tracker.matching.max_l2": 0.7, "tracker.match
 matching (the projection radius already limits the candidates), and map points matched by their earliest
 descriptor in a local map of 50 keyframes (see ``TrackerConfig.point_descriptor``: the larger local map
 reaches further back for that descriptor): they keep more map points tracked per frame (measured in the
-"Feature pipelines" section of benchmarks/README.md)."""
+"Feature pipelines" section of benchmarks/HISTORY.md)."""
 
 FEATURE_PIPELINES: dict[str, dict[str, Any]] = {
     "orb": {"features": "orb", "matcher": "nn"},

@@ -30,7 +30,7 @@ class BundleAdjustmentConfig:
     global_growth: float = 1.0
     """Global BA when the number of keyframes has grown by this fraction since the last global BA (1.0: at
     8, 16, 32, 64, ... keyframes): the cost of global BA stays proportional to the map built; more frequent
-    global BA was no more accurate (benchmarks/README.md, "Measurements moved from docstrings")."""
+    global BA was no more accurate (benchmarks/HISTORY.md, "Measurements moved from docstrings")."""
     global_min_keyframes: int = 8
     """No periodic global BA before the map has this many keyframes (early maps are ill-conditioned)."""
     global_max_keyframes: int = 250
@@ -55,7 +55,7 @@ class BundleAdjustmentConfig:
     num_threads: int = 1
     """Ceres threads (-1: all cores). One thread keeps runs bit-identical: with more, Ceres adds up
     per-thread partial sums in the order the threads happen to finish, so results differ in the last bits
-    from run to run, and over hundreds of BAs the trajectory diverges (benchmarks/README.md, "Measurements
+    from run to run, and over hundreds of BAs the trajectory diverges (benchmarks/HISTORY.md, "Measurements
     moved from docstrings"). -1 is faster on a multi-core machine when determinism does not matter."""
 
     def validate(self) -> None:

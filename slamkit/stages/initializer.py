@@ -85,7 +85,7 @@ class InitializerConfig:
     """Pair selection matches the window exhaustively on each frame's strongest keypoints, this many
     (the chosen pair is matched in full); 0 = all. The counts rank the pairs and gate them at
     ``min_matches``. Fewer would initialize faster but rank pairs differently on hard windows (a new map
-    started much later after a lost stretch; benchmarks/README.md, "Measurements moved from docstrings")."""
+    started much later after a lost stretch; benchmarks/HISTORY.md, "Measurements moved from docstrings")."""
     max_history: int = 300
     """Frames that slid out of the window are kept (features only) up to this many, so they can be
     tracked once the map exists: every frame gets a pose, not only those after initialization."""

@@ -39,7 +39,7 @@ class KeyframeConfig:
     """Degenerate motion: no keyframe (and so no new points) while the median parallax (triangulation
     angle, relative rotation removed) of the tracked matches to the last keyframe is below this, degrees;
     0 disables the test. The value sits between what pure rotation measures (keypoint noise) and the
-    parallax at which real sequences take keyframes when the camera turns (figures: benchmarks/README.md,
+    parallax at which real sequences take keyframes when the camera turns (figures: benchmarks/HISTORY.md,
     "Measurements moved from docstrings")."""
     cull_redundant: float = 0.9
     """Keyframe culling (ORB-SLAM): after each new keyframe's bundle adjustment, a keyframe of its local
@@ -51,7 +51,7 @@ class KeyframeConfig:
     cull_keep_recent: int = 5
     """The most recent keyframes are never culled: new keyframes triangulate with them (``mapper.neighbors``),
     and in a turn, where each keyframe adds few points, culling them starved the map until tracking was lost
-    (benchmarks/README.md, "Measurements moved from docstrings")."""
+    (benchmarks/HISTORY.md, "Measurements moved from docstrings")."""
 
     def validate(self) -> None:
         if not self.flow_threshold >= 0:

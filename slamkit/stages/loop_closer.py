@@ -102,7 +102,7 @@ class LoopClosingConfig:
     report it only (``LoopClosingResult.reason``), for the source paper's trajectories and for ablations.
     Places of other segments are merged either way (map merging, on with ``enabled``). On the synthetic city
     block driven round twice the correction cuts the ATE to 0.26 x (mean of 3 seeds); no sequence of the
-    hard-motion suite closes a loop (benchmarks/README.md, "Loop closure (issue 18)")."""
+    hard-motion suite closes a loop (benchmarks/HISTORY.md, "Loop closure (issue 18)")."""
 
     def validate(self) -> None:
         for name in ("query_candidates", "max_verifications", "loop_group", "min_inliers", "max_postings"):

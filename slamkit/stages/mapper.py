@@ -45,7 +45,7 @@ class MapperConfig:
     parallax between neighbouring keyframes; with COLMAP's 1.5 degrees only the points near the image
     border are mapped, they leave the view within a frame or two, and tracking is lost. Off by default:
     on the hard-motion suite it costs a little at KITTI's natural rate and on fast synthetic turns
-    (benchmarks/README.md, "Hard-motion suite (issue 17)", "Tracking work")."""
+    (benchmarks/HISTORY.md, "Hard-motion suite (issue 17)", "Tracking work")."""
     starved_tri_angle_deg: float = 0.5
     """The smaller triangulation angle of a starving keyframe, degrees (see ``starved_points``); the
     bundle adjustment after it filters points by this angle too (``ba.min_tri_angle_deg`` otherwise), or it
@@ -55,7 +55,7 @@ class MapperConfig:
     known poses (within twice ``max_epipolar_error_px``, in front of both cameras;
     ``slamkit.features.epipolar``) instead of by brute force: about half the matching time, and its ratio
     test compares a keypoint with the few look-alikes on its epipolar line only, so it finds more matches
-    over long baselines. Off by default: the extra matches cost 7-Scenes accuracy (benchmarks/README.md,
+    over long baselines. Off by default: the extra matches cost 7-Scenes accuracy (benchmarks/HISTORY.md,
     "Tracking work"). Applies to the descriptor matcher (``nn``); learned pair matchers match by brute
     force."""
     guided_matching: MatchingConfig = field(default_factory=lambda: MatchingConfig(ratio=0.6, max_hamming=50))

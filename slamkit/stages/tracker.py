@@ -57,14 +57,14 @@ class TrackerConfig:
     local_keyframes: int = 30
     """The local map: points of the last keyframe and of up to this many most covisible keyframes
     (ORB-SLAM's local map is every keyframe sharing points with the frame, up to 80). Smaller local maps
-    lost accuracy, larger ones gained none (benchmarks/README.md, "Measurements moved from docstrings")."""
+    lost accuracy, larger ones gained none (benchmarks/HISTORY.md, "Measurements moved from docstrings")."""
     point_descriptor: str = "newest"
     """The descriptor a local-map point is matched by: that of the reference keyframe or else of the latest
     keyframe of the local map observing it ("newest"), or of the earliest ("oldest"). The ``xfeat``
     pipelines use "oldest": XFeat's descriptors are sampled from a 1/8-resolution map, so keypoints a few
     pixels apart have near-equal descriptors, and a point matched by its newest descriptor can slide,
     keyframe after keyframe, onto a neighbouring keypoint. ORB's descriptors do not slide, and ORB tracks
-    worse with "oldest" (benchmarks/README.md, "Feature pipelines" and "Measurements moved from docstrings")."""
+    worse with "oldest" (benchmarks/HISTORY.md, "Feature pipelines" and "Measurements moved from docstrings")."""
     recheck_inlier_ratio: float = 0.5
     """When the pose from the motion model keeps fewer inliers than this fraction of the points tracked in
     the previous frame, the frame is also matched against the whole local map by descriptor (RANSAC, then

@@ -147,7 +147,7 @@ class XFeatExtractor:
     ``num_features`` are kept: with ``grid`` (default) the best of each cell of an 8x6 grid first, then the
     best of the rest (as slamkit's ORB, so that keypoints spread over the image), else simply the best
     (upstream XFeat). One scale only, as upstream: an image pyramid was measured no better in SLAM
-    (``benchmarks/README.md``, "Feature pipelines") and was removed.
+    (``benchmarks/HISTORY.md``, "Feature pipelines") and was removed.
 
     ``subpixel`` (default): each keypoint moved to the vertex of the parabola through its heatmap peak and
     the two neighbours, per axis (:func:`subpixel_offsets`), for more precise keypoints at no measurable cost.
