@@ -20,10 +20,11 @@ install: $(VENV)/.installed
 demo: install
 	$(VENV)/bin/slamkit run default --out $(OUT)
 
-# the test files spread over TEST_WORKERS processes (pytest-xdist; 0 runs them in this process)
+# the test files spread over TEST_WORKERS processes (pytest-xdist; 0 runs them in this process); the 25
+# slowest tests listed at the end
 TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 bench: install
 	$(PY) benchmarks/bench_slam.py

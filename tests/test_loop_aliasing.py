@@ -6,9 +6,9 @@ back see the same 3D structure shifted by 6 m; see tests/test_synthetic_scenes.p
 them because the correction they imply is a large fraction of the path travelled since the candidate
 (``loop_closing.max_correction``); without that check the same run closes a false loop.
 
-With local mapping (the default) place recognition proposes aliased keyframes too, but none passes the Sim(3)
-verification (seed 0: 18 keyframes "no candidate verified", none refused as aliasing), so the drift check is
-never reached; the check itself is exercised with COLMAP's mapper (``mapper: colmap``), as before issue 27.
+With local mapping (``mapper: local``) place recognition proposes aliased keyframes too, but none passes
+the Sim(3) verification (seed 0: 18 keyframes "no candidate verified", none refused as aliasing), so the drift
+check is never reached; the check itself is exercised with COLMAP's mapper (``mapper: colmap``, the default).
 """
 
 from __future__ import annotations
