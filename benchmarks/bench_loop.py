@@ -47,6 +47,8 @@ import time  # noqa: E402
 import traceback  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+from bench_suite import _override  # noqa: E402  (--set as the suite parses it)
+
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 RESULTS = REPO / "benchmarks" / "results"
@@ -143,12 +145,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="a config override for every run (SlamConfig.with_overrides key, e.g. mapper=colmap); "
                         "repeatable")
     args = p.parse_args(argv)
-    overrides = {}
-    for kv in args.set:
-        key, sep, value = kv.partition("=")
-        if not sep or not key:
-            p.error(f"--set {kv!r}: expected KEY=VALUE")
-        overrides[key] = value
+    overrides = dict(_override(kv) for kv in args.set)
     tasks = [(case, seed, enabled, args.frames, overrides) for case in args.cases
              for seed in range(args.seeds or SEEDS[case])
              for enabled in {"both": (False, True), "on": (True,), "off": (False,)}[args.loop_closing]]
