@@ -380,9 +380,15 @@ class Slam:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
                                                             tr.ref_matches), (LoopClosingResult(), None), mres
         t = time.perf_counter()
-        # the filter angle after BA: local mapping's parallax for the points it makes, a starving keyframe's
-        bres = self.bundle_adjuster.step(slam_map, mres.image_id, self.config.local_mapping.min_parallax_deg if local
-                                         else self.config.mapper.starved_tri_angle_deg if mres.starved else None)
+        # the filter angle after BA: a starving keyframe's smaller angle for the next BAs (either mapper), local
+        # mapping's parallax when below BA's angle, else BA's own
+        lm = self.config.local_mapping
+        if not local:
+            small = self.config.mapper.starved_tri_angle_deg if mres.starved else None
+        else:
+            small = lm.starved_parallax_deg if mres.starved else (
+                lm.min_parallax_deg if lm.min_parallax_deg < self.config.ba.min_tri_angle_deg else None)
+        bres = self.bundle_adjuster.step(slam_map, mres.image_id, small)
         timings["ba"] = time.perf_counter() - t
         if bres.normalization is not None:
             st.apply_normalization(seg, float(bres.normalization.scale))

@@ -55,6 +55,13 @@ class LocalMappingConfig:
     min_parallax_deg: float = 1.0
     """A new point needs at least this angle between its two viewing rays, degrees (ORB-SLAM:
     cos < 0.9998, 1.15 degrees). Bundle adjustment's filter uses it too for the points this stage made."""
+    starved_points: int = 0
+    """A keyframe that would see fewer map points than this with ``min_parallax_deg`` is starving: its
+    candidates down to ``starved_parallax_deg`` become points too, and the bundle adjustments of the next
+    ``ba.local_window`` keyframes filter by that angle (as ``mapper.starved_points`` does for COLMAP's
+    mapper). 0 disables."""
+    starved_parallax_deg: float = 1.0
+    """The smaller parallax of a starving keyframe's new points, degrees (see ``starved_points``)."""
     epipolar_band_px: float = 4.0
     """Candidates lie within this distance of the epipolar line, pixels (times the keypoint scale is not
     applied: the band is a prefilter, the chi-square test decides)."""
@@ -85,6 +92,11 @@ class LocalMappingConfig:
             raise ConfigError(f"local_mapping.neighbors must be >= 1 (got {self.neighbors})")
         if not 0 <= self.min_parallax_deg < 45:
             raise ConfigError(f"local_mapping.min_parallax_deg must be in [0, 45) (got {self.min_parallax_deg})")
+        if not 0 <= self.starved_parallax_deg <= self.min_parallax_deg:
+            raise ConfigError(f"local_mapping.starved_parallax_deg must be in [0, min_parallax_deg] (got "
+                              f"{self.starved_parallax_deg})")
+        if self.starved_points < 0:
+            raise ConfigError(f"local_mapping.starved_points must be >= 0 (got {self.starved_points})")
         if not 0 <= self.min_found_ratio <= 1:
             raise ConfigError(f"local_mapping.min_found_ratio must be in [0, 1] (got {self.min_found_ratio})")
         if self.min_observers < 2:
@@ -208,11 +220,25 @@ class LocalMapper:
         taken = np.zeros(len(frame), bool)
         taken[point2D_idxs] = True
         new_obs = []  # (neighbour, (M, 2) pairs (neighbour keypoint, new keypoint), (M, 3) points)
-        total = 0
+        low = []  # the same, parallax between starved_parallax_deg and min_parallax_deg (a starving keyframe's)
         for n in neighbors:
-            pairs, X = self._new_points(slam_map, n, frame, T_new, scales, taken)
-            taken[pairs[:, 1]] = True
-            new_obs.append((n, pairs, X))
+            pairs, X, parallax = self._new_points(slam_map, n, frame, T_new, scales, taken)
+            good = parallax >= c.min_parallax_deg if c.starved_points > 0 else np.ones(len(pairs), bool)
+            taken[pairs[good, 1]] = True  # a low-parallax candidate may still pair with a later neighbour
+            new_obs.append((n, pairs[good], X[good]))
+            low.append((pairs[~good], X[~good]))
+        starved = c.starved_points > 0 and len(point2D_idxs) + sum(len(p) for _, p, _ in new_obs) < c.starved_points
+        total = 0
+        for k, (n, pairs, X) in enumerate(new_obs):
+            if starved:
+                lp, lX = low[k]
+                keep = ~taken[lp[:, 1]]  # keypoints no neighbour gave a point with enough parallax
+                lp, lX = lp[keep], lX[keep]
+                first = np.sort(np.unique(lp[:, 1], return_index=True)[1])
+                lp, lX = lp[first], lX[first]
+                taken[lp[:, 1]] = True
+                pairs, X = np.concatenate([pairs, lp]), np.concatenate([X, lX])
+                new_obs[k] = (n, pairs, X)
             graph = np.concatenate([shared_observations(slam_map, n, point2D_idxs, point3D_ids), pairs])
             slam_map.add_matches(n, iid, graph)
             total += len(graph)
@@ -226,8 +252,9 @@ class LocalMapper:
         recent.add(created)
         fused, added = self._fuse(slam_map, iid, neighbors) if c.fuse else (0, 0)
         n_points = int((slam_map.point3D_ids(iid) >= 0).sum())
-        counts = (f"{n_points} map points: {len(created)} new, {added} observations and {fused} duplicates fused, "
-                  f"{culled} recent points culled")
+        counts = (f"{n_points} map points: {len(created)} new"
+                  f"{f' (starving: parallax down to {c.starved_parallax_deg:g} deg)' if starved else ''}, "
+                  f"{added} observations and {fused} duplicates fused, {culled} recent points culled")
         if n_points < self.min_keyframe_points:
             slam_map.deregister(iid)
             status, reason = "rejected", f"sees {n_points} map points < {self.min_keyframe_points}"
@@ -235,15 +262,17 @@ class LocalMapper:
             status, reason = "registered", counts
         return LocalMappingResult(status=status, reason=reason, image_id=iid, num_points=n_points,
                                   new_points=len(created), neighbors=tuple(neighbors), num_correspondences=total,
+                                  starved=starved,
                                   created=len(created), culled=culled, fused=fused, observations_added=added)
 
     # ----------------------------------------------------------------- new points
     def _new_points(self, slam_map: SlamMap, n: int, frame: FrameFeatures, T_new: np.ndarray, scales: np.ndarray,
-                    taken: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                    taken: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Matches of keyframe ``n`` with the new frame that make good points: ((M, 2) int64 pairs (keypoint in
-        n, keypoint in the new frame), (M, 3) points)."""
+        n, keypoint in the new frame), (M, 3) points, (M,) parallax in degrees), down to the starving parallax
+        when ``starved_points`` is on."""
         c = self.config
-        empty = np.empty((0, 2), np.int64), np.empty((0, 3))
+        empty = np.empty((0, 2), np.int64), np.empty((0, 3)), np.empty(0)
         T_n = _pose(slam_map.cam_from_world(n).matrix())
         C_n, C_new = -T_n[:3, :3].T @ T_n[:3, 3], -T_new[:3, :3].T @ T_new[:3, 3]
         depth = median_depth(slam_map, n)
@@ -264,9 +293,13 @@ class LocalMapper:
         pairs = np.stack([free_n[pairs[:, 0]], free_c[pairs[:, 1]]], axis=1)
         x1, x2 = kf.keypoints[pairs[:, 0]], frame.keypoints[pairs[:, 1]]
         X = triangulate_matches(x1, x2, T_n, T_new, K)
+        floor = c.starved_parallax_deg if c.starved_points > 0 else c.min_parallax_deg
         ok = check_new_points(X, x1, x2, keypoint_scales(fa)[pairs[:, 0]], scales[pairs[:, 1]], T_n, T_new, K,
-                              c.min_parallax_deg, c.scale_ratio_factor)
-        return pairs[ok].astype(np.int64), X[ok]
+                              floor, c.scale_ratio_factor)
+        X = X[ok]
+        r1, r2 = X - C_n, X - C_new
+        cos = (r1 * r2).sum(axis=1) / np.maximum(np.linalg.norm(r1, axis=1) * np.linalg.norm(r2, axis=1), 1e-300)
+        return pairs[ok].astype(np.int64), X, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
     # ----------------------------------------------------------------- culling
     def _cull_recent(self, slam_map: SlamMap, recent: RecentPoints) -> int:
