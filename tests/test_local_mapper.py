@@ -156,6 +156,30 @@ def test_a_pair_below_the_parallax_threshold_creates_no_points(baseline, creates
     assert max(err) < 1e-6 and all(len(scenes[p]) == 1 and -1 not in scenes[p] for p in with_2)
 
 
+@pytest.mark.parametrize("starved_points, starving", [(10**6, True), (50, False), (0, False)])
+def test_a_starving_keyframe_keeps_its_low_parallax_points(starved_points, starving):
+    """The pair of the test above at 0.12 m (0.5-0.9 degrees): a keyframe that would see fewer than
+    ``starved_points`` map points (here: always) keeps the pair's candidates down to ``starved_parallax_deg``
+    (0.3), at their exact positions, and says so; one that sees enough (more than 50), or with the rule off,
+    makes none."""
+    world = World()
+    slam_map, sids = seed_map(world, [pose_at(0.0), pose_at(1.0)])
+    config = LocalMappingConfig(neighbors=2, fuse=False, starved_points=starved_points, starved_parallax_deg=0.3)
+    res = insert(LocalMapper(config), slam_map, sids, RecentPoints(), world, 2, pose_at(1.12))
+    assert res.registered and res.starved == starving and ("starving" in res.reason) == starving
+    rec = slam_map.reconstruction
+    with_2 = [p for p in rec.point3D_ids()
+              if {el.image_id for el in rec.point3D(p).track.elements} == {2, res.image_id}]
+    if not starving:
+        assert with_2 == []
+        return
+    only_2 = np.setdiff1d(np.intersect1d(sids[2], sids[res.image_id]), sids[1])
+    assert len(with_2) >= 0.95 * len(only_2) and len(only_2) > 50
+    scenes = scene_of(slam_map, sids)
+    err = [np.linalg.norm(rec.point3D(p).xyz - world.xyz[next(iter(scenes[p]))]) for p in with_2]
+    assert max(err) < 1e-6 and all(len(scenes[p]) == 1 and -1 not in scenes[p] for p in with_2)
+
+
 def test_wrong_correspondences_are_culled_by_the_recent_point_test_while_true_points_stay():
     """A keyframe carries 30 look-alike keypoints: each has the descriptor of a keypoint of its neighbour that
     no map point covers, and sits on that keypoint's epipolar line at the wrong depth, so it triangulates into a
@@ -245,3 +269,7 @@ def test_local_mapping_config_validation():
         LocalMappingConfig(min_found_ratio=2).validate()
     with pytest.raises(ConfigError, match="min_observers"):
         LocalMappingConfig(min_observers=1).validate()
+    with pytest.raises(ConfigError, match="starved_parallax_deg"):
+        LocalMappingConfig(min_parallax_deg=1.0, starved_parallax_deg=1.5).validate()
+    with pytest.raises(ConfigError, match="starved_points"):
+        LocalMappingConfig(starved_points=-1).validate()

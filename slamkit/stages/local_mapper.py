@@ -15,7 +15,9 @@ For a new keyframe K with its tracked pose and 2D-3D inliers (``LocalMapper.step
    without a map point, near each other's epipolar line of the known poses (``features.epipolar``), descriptor
    ratio ``matching.ratio``; each match triangulated (linear, per pair) and accepted only with positive depth
    in both views, reprojection error within the chi-square bound (5.991, two degrees of freedom at 95 %) at
-   the keypoint's scale, parallax above ``min_parallax_deg`` and consistent keypoint scales.
+   the keypoint's scale, parallax above ``min_parallax_deg`` and consistent keypoint scales. A starving
+   keyframe (``starved_points``: forward motion, where the points ahead see little parallax) keeps its
+   candidates down to ``starved_parallax_deg``.
 4. *Fusion* (SearchInNeighbors): K's points projected into its neighbours and theirs into K; a projected point
    that matches a keypoint by descriptor within ``fuse_radius_px`` (times the keypoint scale) and the
    chi-square bound either gains that observation or, when the keypoint already has another point, the two
