@@ -56,12 +56,16 @@ class LocalMappingConfig:
     """A pair whose baseline is below this fraction of the neighbour's median scene depth creates no points."""
     min_parallax_deg: float = 1.0
     """A new point needs at least this angle between its two viewing rays, degrees (ORB-SLAM:
-    cos < 0.9998, 1.15 degrees). Bundle adjustment's filter uses it too for the points this stage made."""
+    cos < 0.9998, 1.15 degrees). Bundle adjustment's filter uses it too for the points this stage made. 2 is
+    more accurate on hand-held motion (7-Scenes at every 5th frame: 3.3 against 4.8 cm) but loses KITTI at
+    every 3rd frame (benchmarks/HISTORY.md, "Local mapping (issue 27)", "Session 15")."""
     starved_points: int = 0
     """A keyframe that would see fewer map points than this with ``min_parallax_deg`` is starving: its
     candidates down to ``starved_parallax_deg`` become points too, and the bundle adjustments of the next
     ``ba.local_window`` keyframes filter by that angle (as ``mapper.starved_points`` does for COLMAP's
-    mapper). 0 disables."""
+    mapper). 0 disables. Off by default: with ``min_parallax_deg`` 2 and 300 points it keeps KITTI at every
+    3rd frame mapped and gives the best fast-turn rows, but loses a KITTI skip-2 seed and costs KITTI skip-1
+    accuracy (benchmarks/HISTORY.md, "Local mapping (issue 27)", "Session 15")."""
     starved_parallax_deg: float = 1.0
     """The smaller parallax of a starving keyframe's new points, degrees (see ``starved_points``)."""
     epipolar_band_px: float = 4.0
