@@ -23,7 +23,7 @@ from .errors import SlamkitError
 from .eval import evaluate
 from .eval.report import check_posed, evaluate_run
 from .exporter import add_export_parser
-from .io.run_dir import check_output, out_dir_lock
+from .io.run_dir import check_output, out_dir_lock, save_id
 from .io.saved import check_run
 from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, notify, raise_interrupted
 from .io import write_tum
@@ -117,7 +117,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.verbose:
             tqdm.write(str(r))
 
-    outcome = None
+    outcome, before = None, save_id(out)
     with StopRequest() as stop:  # signals are handled until the last line is printed
         try:
             outcome = run_to_folder(args.source, args.out, config_from_args(args), resume=args.resume,
@@ -128,8 +128,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                 bar.close()
             return _report_run(args, outcome)
         except Interrupted as e:  # the last signal arrived before the first frame, or after the save
-            held = (f"{out} was left as it was" if outcome is None or not outcome.saved else
-                    f"{out} holds this run, saved")
+            # (then run_to_folder returned no outcome, so the folder's save id says whether this run is in it)
+            now = save_id(out)
+            saved = outcome.saved if outcome is not None else now is not None and now != before
+            held = f"{out} holds this run, saved" if saved else f"{out} was left as it was"
             print(f"slamkit: {e}: stopped at once; {held}", file=sys.stderr)
             return e.exit_code
         finally:

@@ -291,12 +291,33 @@ def test_repeated_signals_leave_the_old_run_or_the_new_one_and_say_which(tmp_pat
     check_run(out)  # whichever run it holds is whole: every file as its manifest says
     check_session(out / "session")
     frames = json.loads((out / "summary.json").read_text())["frames"]
-    if "still holds the previous run, unchanged" in last:
-        assert "stopped at once while" in last
+    if "still holds the previous run, unchanged" in last or "was left as it was" in last:
+        assert "stopped at once" in last
         assert save_id(out) == old_id and _digest(out) == old_files and frames == 20
     else:
         assert any(s in last for s in ("holds this run", "interrupted after frame")), last
         assert save_id(out) != old_id and 25 < frames < 60
+
+
+def test_a_last_signal_after_the_save_says_the_folder_holds_this_run(tmp_path, monkeypatch, capfd):
+    """The third signal raised after the save but before the run's outcome is returned (here: while its ATE is
+    evaluated): the command says the folder holds this run, as it does, not that it was left as it was."""
+    import slamkit.runner
+    from slamkit.interrupt import Interrupted
+
+    out = tmp_path / "r"
+    assert main([*RUN, "--max-frames", "12", "--out", str(out)]) == 0
+    old_id = save_id(out)
+    capfd.readouterr()
+
+    def evaluate(outcome):
+        raise Interrupted(signal.SIGTERM)
+
+    monkeypatch.setattr(slamkit.runner, "_evaluate", evaluate)
+    assert main([*RUN, "--max-frames", "14", "--out", str(out), "--resume"]) == 143
+    last = capfd.readouterr().err.strip().splitlines()[-1]
+    assert "stopped at once" in last and "holds this run, saved" in last, last
+    assert save_id(out) not in (None, old_id) and json.loads((out / "summary.json").read_text())["frames"] == 14
 
 
 def test_a_signal_landing_in_a_destructor_still_ends_the_command_without_a_traceback(monkeypatch, capfd):
