@@ -133,6 +133,21 @@ def test_triangulated_points_pass_the_checks_and_sit_on_the_scene():
     assert check_new_points(X, f1.keypoints[i1], f2.keypoints[i2], ones, 1.5 * ones, T1, T2, K, 1.0, 1.8).all()
 
 
+def check_points_of_the_pair(slam_map, sids, world, new_id: int, creates: bool) -> None:
+    """The points of keyframe 2 and keyframe ``new_id`` alone: none, or (``creates``) nearly every scene point
+    the two see and keyframe 1 does not, each at its exact position."""
+    rec = slam_map.reconstruction
+    with_2 = [p for p in rec.point3D_ids() if {el.image_id for el in rec.point3D(p).track.elements} == {2, new_id}]
+    if not creates:
+        assert with_2 == []
+        return
+    only_2 = np.setdiff1d(np.intersect1d(sids[2], sids[new_id]), sids[1])  # what the pair can map
+    assert len(with_2) >= 0.95 * len(only_2) and len(only_2) > 50
+    scenes = scene_of(slam_map, sids)
+    err = [np.linalg.norm(rec.point3D(p).xyz - world.xyz[next(iter(scenes[p]))]) for p in with_2]
+    assert max(err) < 1e-6 and all(len(scenes[p]) == 1 and -1 not in scenes[p] for p in with_2)
+
+
 @pytest.mark.parametrize("baseline, creates", [(0.12, False), (0.6, True)])
 def test_a_pair_below_the_parallax_threshold_creates_no_points(baseline, creates):
     """Points 8-12 m away: a 0.12 m baseline to keyframe 2 gives them at most 0.9 degrees of parallax (below
@@ -143,17 +158,7 @@ def test_a_pair_below_the_parallax_threshold_creates_no_points(baseline, creates
     mapper = LocalMapper(LocalMappingConfig(neighbors=2, fuse=False))
     res = insert(mapper, slam_map, sids, RecentPoints(), world, 2, pose_at(1.0 + baseline))
     assert res.registered and sorted(res.neighbors) == [1, 2]
-    rec = slam_map.reconstruction
-    with_2 = [p for p in rec.point3D_ids()
-              if {el.image_id for el in rec.point3D(p).track.elements} == {2, res.image_id}]
-    if not creates:
-        assert with_2 == []
-        return
-    only_2 = np.setdiff1d(np.intersect1d(sids[2], sids[res.image_id]), sids[1])  # what the pair can map
-    assert len(with_2) >= 0.95 * len(only_2) and len(only_2) > 50
-    scenes = scene_of(slam_map, sids)
-    err = [np.linalg.norm(rec.point3D(p).xyz - world.xyz[next(iter(scenes[p]))]) for p in with_2]
-    assert max(err) < 1e-6 and all(len(scenes[p]) == 1 and -1 not in scenes[p] for p in with_2)
+    check_points_of_the_pair(slam_map, sids, world, res.image_id, creates)
 
 
 @pytest.mark.parametrize("starved_points, starving", [(10**6, True), (50, False), (0, False)])
@@ -167,17 +172,7 @@ def test_a_starving_keyframe_keeps_its_low_parallax_points(starved_points, starv
     config = LocalMappingConfig(neighbors=2, fuse=False, starved_points=starved_points, starved_parallax_deg=0.3)
     res = insert(LocalMapper(config), slam_map, sids, RecentPoints(), world, 2, pose_at(1.12))
     assert res.registered and res.starved == starving and ("starving" in res.reason) == starving
-    rec = slam_map.reconstruction
-    with_2 = [p for p in rec.point3D_ids()
-              if {el.image_id for el in rec.point3D(p).track.elements} == {2, res.image_id}]
-    if not starving:
-        assert with_2 == []
-        return
-    only_2 = np.setdiff1d(np.intersect1d(sids[2], sids[res.image_id]), sids[1])
-    assert len(with_2) >= 0.95 * len(only_2) and len(only_2) > 50
-    scenes = scene_of(slam_map, sids)
-    err = [np.linalg.norm(rec.point3D(p).xyz - world.xyz[next(iter(scenes[p]))]) for p in with_2]
-    assert max(err) < 1e-6 and all(len(scenes[p]) == 1 and -1 not in scenes[p] for p in with_2)
+    check_points_of_the_pair(slam_map, sids, world, res.image_id, starving)
 
 
 def test_wrong_correspondences_are_culled_by_the_recent_point_test_while_true_points_stay():
@@ -270,6 +265,7 @@ def test_local_mapping_config_validation():
     with pytest.raises(ConfigError, match="min_observers"):
         LocalMappingConfig(min_observers=1).validate()
     with pytest.raises(ConfigError, match="starved_parallax_deg"):
-        LocalMappingConfig(min_parallax_deg=1.0, starved_parallax_deg=1.5).validate()
+        LocalMappingConfig(min_parallax_deg=1.0, starved_parallax_deg=1.5, starved_points=300).validate()
+    LocalMappingConfig(min_parallax_deg=0.5).validate()  # the starving rule off: its angle is not checked
     with pytest.raises(ConfigError, match="starved_points"):
         LocalMappingConfig(starved_points=-1).validate()

@@ -98,7 +98,7 @@ class LocalMappingConfig:
             raise ConfigError(f"local_mapping.neighbors must be >= 1 (got {self.neighbors})")
         if not 0 <= self.min_parallax_deg < 45:
             raise ConfigError(f"local_mapping.min_parallax_deg must be in [0, 45) (got {self.min_parallax_deg})")
-        if not 0 <= self.starved_parallax_deg <= self.min_parallax_deg:
+        if self.starved_points > 0 and not 0 <= self.starved_parallax_deg <= self.min_parallax_deg:
             raise ConfigError(f"local_mapping.starved_parallax_deg must be in [0, min_parallax_deg] (got "
                               f"{self.starved_parallax_deg})")
         if self.starved_points < 0:
