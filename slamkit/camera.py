@@ -87,6 +87,12 @@ class Intrinsics:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
+    def is_guess(self) -> bool:
+        """Whether these are the documented guess :meth:`from_focal` gives without a focal length (sources
+        without any calibration return it; ``Slam`` then estimates the camera)."""
+        return self == Intrinsics.from_focal(self.width, self.height)
+
+    @property
     def has_distortion(self) -> bool:
         return any(abs(d) > 0 for d in self.dist)
 

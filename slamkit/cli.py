@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from .ablate import STATUS_LOST, STATUS_OK, check_sweep_args, connect, markdown_table, parse_grid, plan, sweep
 from .camera import parse_camera_values
-from .config import PRESETS, SlamConfig
+from .config import PRESETS, SlamConfig, _is_camera_path
 from .errors import SlamkitError
 from .eval import evaluate
 from .eval.report import check_posed, evaluate_run
@@ -50,10 +50,11 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--mapper", choices=list(MAPPER_METHODS),
                    help="how keyframes make map points: colmap (COLMAP's triangulator, default) or local "
                         "(ORB-SLAM's local mapping: created, checked, culled and fused)")
-    g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
+    g.add_argument("--camera", metavar="auto|RUN_DIR|F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
                    help="intrinsics in pixels instead of the source's: a focal length (principal point at the "
-                        "centre) or fx,fy,cx,cy with optional OpenCV distortion; for videos and image folders, "
-                        "whose intrinsics are otherwise a guess (focal 1.2 x width)")
+                        "centre) or fx,fy,cx,cy with optional OpenCV distortion; 'auto' estimates the focal "
+                        "length from the frames (the default for videos and image folders without camera.txt); "
+                        "a run folder or camera.txt reuses the camera another run used or estimated")
     g.add_argument("--frame-skip", type=int, help="use every n-th frame")
     g.add_argument("--max-frames", type=int, help="stop after this many frames")
     g.add_argument("--seed", type=int)
@@ -72,8 +73,12 @@ def _overrides_from_args(args: argparse.Namespace) -> dict:
                                           "init_frames", "init_strategy", "mapper", "camera", "frame_skip", "max_frames",
                                           "seed")
             if getattr(args, k) is not None}
-    if args.camera is not None:  # "" given explicitly is a mistake, not "the source's own"
-        parse_camera_values(args.camera, "--camera")
+    if args.camera is not None and args.camera != "auto":  # "" given explicitly is a mistake
+        if _is_camera_path(args.camera):
+            if not Path(args.camera).exists():
+                raise SlamkitError(f"--camera {args.camera}: no such run folder or camera.txt")
+        else:
+            parse_camera_values(args.camera, "--camera")
     for item in args.set:
         if "=" not in item:
             raise SlamkitError(f"--set {item!r}: expected KEY=VALUE")
@@ -105,10 +110,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         nonlocal bar
         if resumed_after is not None:
             note(f"resuming the session in {out} after frame {resumed_after}")
-        cam = slam.camera
+        if slam.calibrator is not None and slam.calibrator.initial is None:
+            print(f"slamkit: estimating the camera from the first "
+                  f"{min(len(slam), slam.config.self_calibration.window_frames)} frames (no calibration given or "
+                  "found; --camera sets one)", file=sys.stderr)
+            slam.calibrate()
         print(f"slamkit: {slam.source!r}, {len(slam) - len(slam.records)} frames to process -> {out}; camera "
-              f"fx={cam.fx:g} fy={cam.fy:g} cx={cam.cx:g} cy={cam.cy:g}{' (--camera)' if slam.config.camera else ''}",
-              file=sys.stderr)
+              f"{slam.describe_camera()}", file=sys.stderr)
         bar = tqdm(total=len(slam), initial=len(slam.records), unit="frame", disable=args.quiet, dynamic_ncols=True)
 
     def on_result(slam: Slam, r) -> None:
@@ -176,6 +184,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"ATE RMSE {100 * a['rmse']:.2f} cm over {a['count']} frames"
               + (f", {100 * k['rmse']:.2f} cm over {k['count']} keyframes" if k else "")
               + f" (Sim(3)-aligned); report: {result['report_md']} and {result['report_html']}", file=sys.stderr)
+        if isinstance(result.get("camera"), dict) and result["camera"].get("description"):
+            print(f"camera: {result['camera']['description']}", file=sys.stderr)
         print(json.dumps(result, indent=2))
         return 0
     if run.is_dir():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import numbers
+import os
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -20,6 +21,7 @@ from .stages.keyframes import KeyframeConfig
 from .stages.local_mapper import LocalMappingConfig
 from .stages.loop_closer import LoopClosingConfig
 from .stages.mapper import MapperConfig
+from .stages.self_calibration import SelfCalibrationConfig
 from .stages.tracker import TrackerConfig
 
 
@@ -45,11 +47,12 @@ class SlamConfig:
     num_features: int = 2000
     """Keypoints per frame the extractor aims for."""
     camera: str = ""
-    """Intrinsics to use instead of the source's: ``"F"`` (focal length in pixels, principal point at the
-    centre), ``"FX,FY,CX,CY"``, or those followed by OpenCV distortion ``K1,K2,P1,P2[,K3]`` (CLI
-    ``--camera``). For videos and image folders without calibration, whose intrinsics are otherwise a guess
-    (focal 1.2 x the image width: often far off, and then initialization finds too little parallax).
-    "" = the source's own."""
+    """Intrinsics to use instead of the source's (CLI ``--camera``): ``"F"`` (focal length in pixels,
+    principal point at the centre), ``"FX,FY,CX,CY"``, or those followed by OpenCV distortion
+    ``K1,K2,P1,P2[,K3]``; ``"auto"`` to estimate the focal length from the frames and the map
+    (:mod:`slamkit.stages.self_calibration`); or the path of a run folder or a ``camera.txt`` (the camera a
+    run used or estimated, for another video from the same camera). "" = the source's own calibration, and
+    ``auto`` when the source has none (a video or image folder without ``camera.txt``)."""
     frame_skip: int = 1
     """Use every n-th frame of the source."""
     max_frames: int | None = None
@@ -70,6 +73,8 @@ class SlamConfig:
     tracker: TrackerConfig = field(default_factory=TrackerConfig)
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     mapper: MapperConfig = field(default_factory=MapperConfig)
+    self_calibration: SelfCalibrationConfig = field(default_factory=SelfCalibrationConfig)
+    """Estimating the focal length of an unknown camera (``camera="auto"``)."""
     local_mapping: LocalMappingConfig = field(default_factory=LocalMappingConfig)
     """The local-mapping stage used when ``mapper.method`` is "local"."""
     ba: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
@@ -102,12 +107,12 @@ class SlamConfig:
             raise ConfigError(f"frame_skip must be >= 1 (got {self.frame_skip})")
         if self.max_frames is not None and self.max_frames < 1:
             raise ConfigError(f"max_frames must be >= 1 or None (got {self.max_frames})")
-        if self.camera:
+        if self.camera and self.camera != "auto" and not _is_camera_path(self.camera):
             parse_camera_values(self.camera, "camera")
         if self.max_lost_frames < 1:
             raise ConfigError(f"max_lost_frames must be >= 1 (got {self.max_lost_frames})")
         for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.local_mapping, self.ba,
-                      self.loop_closing):
+                      self.loop_closing, self.self_calibration):
             stage.validate()
         if self.mapper.min_keyframe_points > self.initializer.min_points * 10:
             raise ConfigError("mapper.min_keyframe_points is larger than any initial map could provide "
@@ -233,6 +238,12 @@ nearest neighbours (``mnn``: the same matches as ``nn`` with a mutual check, fro
 Choosing a pipeline sets every setting any pipeline tunes (the others' to their defaults, so switching from
 ``xfeat`` back to ``orb`` leaves no XFeat setting behind); settings given after the name (``--num-features``,
 ``--set``) override the pipeline's."""
+
+
+def _is_camera_path(text: str) -> bool:
+    """Whether a camera text names a file or folder (a ``camera.txt``, or a run folder holding one) rather than
+    numbers: it has a path separator, ends in ``.txt`` or exists."""
+    return "/" in text or "\\" in text or text.endswith(".txt") or os.path.exists(text)
 
 
 def _pipeline_defaults() -> dict[str, Any]:

@@ -56,14 +56,14 @@ def matrix_from_rigid(r: pycolmap.Rigid3d) -> np.ndarray:
 
 
 def bundle_adjustment_options(iterations: int, loss: str = "soft_l1", refine_intrinsics: bool = False,
-                              function_tolerance: float = 1e-6, num_threads: int = 1
-                              ) -> pycolmap.BundleAdjustmentOptions:
+                              function_tolerance: float = 1e-6, num_threads: int = 1,
+                              refine_principal_point: bool = False) -> pycolmap.BundleAdjustmentOptions:
     """pycolmap BA options: robust loss (scale 1 px), intrinsics fixed unless asked, quiet. Shared by the
     bundle adjuster and the initializer's two-view BA."""
     o = pycolmap.BundleAdjustmentOptions()
     o.print_summary = False
     o.refine_focal_length = refine_intrinsics
-    o.refine_principal_point = False
+    o.refine_principal_point = refine_principal_point
     o.refine_extra_params = False
     o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, BA_LOSSES[loss])
     o.ceres.loss_function_scale = 1.0
@@ -119,6 +119,16 @@ class SlamMap:
     @property
     def pycolmap_camera(self) -> pycolmap.Camera:
         return self.reconstruction.camera(CAMERA_ID)
+
+    def set_focal(self, focal: float | None = None) -> float:
+        """Set fx = fy = ``focal`` in the map's camera (default: the mean of the fx and fy bundle adjustment
+        refined: one focal length for both axes); returns it. :attr:`camera` follows."""
+        cam = self.reconstruction.camera(CAMERA_ID)
+        fx, fy, cx, cy = (float(v) for v in cam.params)
+        f = 0.5 * (fx + fy) if focal is None else float(focal)
+        cam.params = [f, f, cx, cy]
+        self.camera = Intrinsics(self.camera.width, self.camera.height, f, f, cx, cy)
+        return f
 
     def add_image(self, frame_index: int, timestamp: float, keypoints: np.ndarray, features: Features,
                   colors: np.ndarray, thumbnail: np.ndarray | None = None) -> int:

@@ -17,8 +17,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .camera import Intrinsics
-from .config import SlamConfig
+from .camera import Intrinsics, focal_range
+from .config import SlamConfig, _is_camera_path
 from .errors import CalibrationError, ImageReadError, check_type
 from .features import FrameFeatures, create_extractor, create_matcher
 from .frames import FrameLoader, thumbnail
@@ -31,6 +31,7 @@ from .results import StepResult, TrackedMatches
 from .session import load_session, save_session, unfinished_snapshot
 from .sources import open_source
 from .sources.base import FrameSource
+from .sources.calibration import camera_from_path
 from .stages.ba import BundleAdjuster
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
 from .stages.initializer import Initializer, track_window
@@ -40,6 +41,7 @@ from .stages.loop_closer import LoopCloser, LoopClosingResult, MergeCandidate
 from .stages.mapper import Mapper
 from .stages.motion import MotionModel
 from .stages.relocalizer import Relocalizer, RelocalizerConfig
+from .stages.self_calibration import SelfCalibrator
 from .stages.tracker import Tracker, TrackingResult, retrack_initial_frames
 from .state import FrameRecord, FrameStatus, Segment, SlamState
 from .types import Frame
@@ -97,7 +99,9 @@ class Slam:
         self.source_spec = str(source) if isinstance(source, (str, Path)) else None
         """How the source was opened (a path or spec), recorded in sessions so ``Slam.resume`` can reopen it."""
         if isinstance(source, (str, Path)):
-            source = open_source(str(source), camera=config.camera or None)
+            numbers = config.camera if config.camera and config.camera != "auto" and not _is_camera_path(
+                config.camera) else None  # "auto" and a camera.txt are applied by reset()
+            source = open_source(str(source), camera=numbers)
         self.source = source
         self.callbacks: list[Callback] = list(callbacks or [])
         self.loader = FrameLoader(source)
@@ -112,8 +116,21 @@ class Slam:
             self.config = config.validate()
         c = self.config
         self.camera = self.source.camera
-        if c.camera:  # the user's intrinsics instead of the source's (or its guess)
-            self.camera = Intrinsics.parse(c.camera, self.camera.width, self.camera.height)
+        self.camera_origin = "the source's calibration"
+        """How :attr:`camera` was obtained: the source's calibration, ``--camera``, a camera.txt, or estimated."""
+        self.calibrator: SelfCalibrator | None = None
+        """Self-calibration (``camera="auto"``, or no calibration given or found), else None."""
+        w, h = self.camera.width, self.camera.height
+        if c.camera == "auto" or (not c.camera and self.camera.is_guess):
+            self.camera = Intrinsics.from_focal(w, h)  # until calibrate(): no distortion is known
+            self.calibrator = SelfCalibrator(c.self_calibration, c.seed)
+            self.camera_origin = "estimated"
+        elif c.camera and _is_camera_path(c.camera):  # a run folder or camera.txt: another run's camera
+            self.camera = camera_from_path(c.camera, w, h, "camera")
+            self.camera_origin = f"from {c.camera}"
+        elif c.camera:  # the user's intrinsics instead of the source's
+            self.camera = Intrinsics.parse(c.camera, w, h)
+            self.camera_origin = "given (camera=...)"
         extractor = create_extractor(c.features, **c.extractor_options())  # first: its missing weights first
         matcher = None if c.matcher == "nn" else create_matcher(c.matcher, **c.matcher_options())  # "nn": per stage
         self.tracker = Tracker(replace(c.tracker, random_seed=c.seed))
@@ -124,6 +141,7 @@ class Slam:
         self.mapper = Mapper(c.mapper, matcher)
         self.local_mapper = LocalMapper(c.local_mapping, c.mapper.min_keyframe_points)
         self.bundle_adjuster = BundleAdjuster(c.ba)
+        self.bundle_adjuster.refine_principal_point = c.self_calibration.refine_principal_point
         k = c.keyframes
         self.culler = KeyframeCuller(KeyframeCullingConfig(k.cull_redundant, k.cull_min_observers, k.cull_keep_recent,
                                                            c.ba.local_window, max(RETRACK_BELOW_KEYFRAMES, 4)))
@@ -218,6 +236,8 @@ class Slam:
 
     def _step(self) -> StepResult:
         st = self.state
+        if self.calibrator is not None and self.calibrator.initial is None:
+            self.calibrate()
         t_start = time.perf_counter()
         cpu_start = time.process_time()
         timings: dict[str, float] = {}
@@ -253,6 +273,52 @@ class Slam:
         st.records.append(record)
         timings["read"] = time.perf_counter() - t_start
         return self._result(record, SKIPPED, f"bad frame skipped: {error}", timings)
+
+    # ----------------------------------------------------------------- self-calibration
+    def calibrate(self) -> SelfCalibrator | None:
+        """Estimate the focal length from the first frames now (self-calibration's first phase; the first
+        :meth:`step` does it otherwise), so that :attr:`camera` holds the estimate. Returns the calibrator,
+        or None when the camera is known."""
+        cal = self.calibrator
+        if cal is None or cal.initial is not None:
+            return cal
+        self.loader.drain()  # the source is read by one thread at a time
+        t, cpu = time.perf_counter(), time.process_time()
+        for cursor in range(min(len(self.indices), cal.config.window_frames)):
+            try:
+                frame = self.source[int(self.indices[cursor])]
+            except (ImageReadError, CalibrationError):  # the run skips it with its reason later
+                continue
+            cal.step(frame.gray)
+        cal.estimate(Intrinsics.from_focal(self.camera.width, self.camera.height).fx)
+        self._use_focal(cal.focal)
+        self.state.add_timings({"calibrate": time.perf_counter() - t})
+        self.state.wall_time += time.perf_counter() - t
+        self.state.cpu_time += time.process_time() - cpu
+        return cal
+
+    def _use_focal(self, focal: float, cx: float | None = None, cy: float | None = None) -> None:
+        """Track and initialize with this focal length (and principal point) from now on."""
+        lo, hi = focal_range(self.camera.width, self.camera.height)
+        focal = min(max(float(focal), lo * 1.001), hi * 0.999)
+        cx = self.camera.cx if cx is None else float(cx)
+        cy = self.camera.cy if cy is None else float(cy)
+        self.camera = replace(self.camera, fx=focal, fy=focal, cx=cx, cy=cy)
+        self.loader.camera = self.camera  # no distortion is known: the keypoints are the same
+        self.initializer.set_camera(self.camera)
+
+    def _refining(self, slam_map: SlamMap, final: bool = False) -> bool:
+        """Whether this BA refines the focal length (self-calibration's second phase)."""
+        return self.calibrator is not None and self.calibrator.refining(slam_map.num_keyframes, final)
+
+    def _refined(self, slam_map: SlamMap, final: bool = False) -> None:
+        """After a refining BA: one focal length for both axes, used from now on, and recorded."""
+        lo, hi = focal_range(self.camera.width, self.camera.height)
+        cam = slam_map.pycolmap_camera
+        focal = min(max(0.5 * (float(cam.params[0]) + float(cam.params[1])), lo * 1.001), hi * 0.999)
+        slam_map.set_focal(focal)
+        self.calibrator.refined(focal, slam_map.num_keyframes, final)
+        self._use_focal(focal, float(cam.params[2]), float(cam.params[3]))
 
     # ----------------------------------------------------------------- initialization
     def _initialize(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
@@ -388,7 +454,10 @@ class Slam:
         else:
             small = lm.starved_parallax_deg if mres.starved else (
                 lm.min_parallax_deg if lm.min_parallax_deg < self.config.ba.min_tri_angle_deg else None)
-        bres = self.bundle_adjuster.step(slam_map, mres.image_id, small)
+        refine = self._refining(slam_map)
+        bres = self.bundle_adjuster.step(slam_map, mres.image_id, small, refine_focal=refine)
+        if refine:
+            self._refined(slam_map)
         timings["ba"] = time.perf_counter() - t
         if bres.normalization is not None:
             st.apply_normalization(seg, float(bres.normalization.scale))
@@ -429,7 +498,10 @@ class Slam:
             merge = self._merge_maps(res.merge_candidate)
             seg = self.state.segment
         if res.needs_global_ba or (merge is not None and merge.global_ba_advised):
-            bres = self.bundle_adjuster.adjust_global(seg.slam_map)
+            refine = self._refining(seg.slam_map)
+            bres = self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=refine)
+            if refine:
+                self._refined(seg.slam_map)
             if bres.normalization is not None:
                 self.state.apply_normalization(seg, float(bres.normalization.scale))
             self.state.last_ids = None
@@ -481,9 +553,13 @@ class Slam:
             self.unfinished_session = None
         st.finished = True
         t = time.perf_counter()
+        main = st.main_segment
         for seg in st.segments:
             if self.config.ba.final_global and seg.slam_map.num_keyframes >= 3:
-                bres = self.bundle_adjuster.adjust_global(seg.slam_map)
+                refine = seg is main and self._refining(seg.slam_map, final=True)
+                bres = self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=refine)
+                if refine:
+                    self._refined(seg.slam_map, final=True)
                 if bres.normalization is not None:
                     st.apply_normalization(seg, float(bres.normalization.scale))
         st.timings["ba"] = st.timings.get("ba", 0.0) + time.perf_counter() - t
@@ -532,7 +608,22 @@ class Slam:
         st = self.state
         why = None if st.segments else self._why_not_initialized()
         return {"source": getattr(self.source, "name", str(self.source)), **st.summary(len(self.indices), why),
-                "config": self.config.to_dict()}
+                "camera": self.camera_report(), "config": self.config.to_dict()}
+
+    def camera_report(self) -> dict:
+        """The camera used and how it was obtained (with self-calibration: its estimate, uncertainty and
+        history), JSON-serialisable."""
+        cal = self.calibrator
+        out = {**self.camera.to_dict(), "origin": self.camera_origin, "description": self.describe_camera()}
+        if cal is not None:
+            out["self_calibration"] = {**cal.state(), "weak": cal.weak}
+        return out
+
+    def describe_camera(self) -> str:
+        """One line: the intrinsics used and where they come from."""
+        cam = self.camera
+        how = self.calibrator.describe() if self.calibrator is not None else self.camera_origin
+        return f"fx={cam.fx:.1f} fy={cam.fy:.1f} cx={cam.cx:.1f} cy={cam.cy:.1f}, {how}"
 
     def _why_not_initialized(self) -> str:
         """Why no map exists yet (for the summary): featureless frames, or the initializer's last reason."""

@@ -134,6 +134,7 @@ def _write_state_files(slam: "Slam", folder: Path) -> None:
         **_state_to(slam.state, arrays, folder),
         "bundle_adjuster": slam.bundle_adjuster.state(),
         "initializer": _window_to(slam.initializer.window, arrays),
+        "self_calibration": slam.calibrator.state() if getattr(slam, "calibrator", None) is not None else None,
     }
     np.savez(folder / "state.npz", **arrays)
     (folder / SESSION_FILE).write_text(json.dumps(meta, indent=1, default=_json_default))
@@ -354,6 +355,11 @@ def _check_source(saved: dict, source, folder: Path) -> None:
 def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
     slam.state = _state_from(meta, arrays, folder, slam.camera)
     slam.bundle_adjuster.restore(meta["bundle_adjuster"])
+    cal = meta.get("self_calibration")
+    if cal is not None and slam.calibrator is not None:  # the estimate goes on from where it was
+        slam.calibrator.restore(cal)
+        if slam.calibrator.focal is not None:
+            slam._use_focal(slam.calibrator.focal)
     slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(

@@ -135,6 +135,10 @@ def test_notebook_runs(path: Path, tmp_path: Path):
         perturbed, adjusted = (float(v) for v in re.search(r"median reprojection error ([0-9.]+) px -> ([0-9.]+) px",
                                                             text).groups())
         assert adjusted < 0.5 * perturbed  # bundle adjustment brings the perturbed map back
+        # self-calibration: the unknown camera's focal length within 1 % after the run, a forward-only one weak
+        err = float(re.search(r"error against the true focal length: ([-+0-9.]+) %", text).group(1))
+        assert abs(err) < 1.0
+        assert re.search(r"60 frames: f=[0-9.]+ px", text) and "(weak: " in text
     # the kernel is gone: so is the meshcat server it started (no orphan holding ports)
     deadline = time.monotonic() + 10
     while (meshcat_servers() - before) and time.monotonic() < deadline:

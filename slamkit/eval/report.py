@@ -77,6 +77,7 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
         "mean_reprojection_error_px": summary.get("mean_reprojection_error_px"),
         "fps": summary.get("fps"), "wall_time_s": summary.get("wall_time_s"),
         "timings_s": summary.get("timings_s", {}),
+        "camera": summary.get("camera"),
     }
     files = _plots(run, summary, est, gt_traj, kf_traj, a, r, result["timings_s"]) if plots else {}
     if map_view:
@@ -208,6 +209,9 @@ def _report(res: dict, run: Path) -> tuple[str, str]:
                   f"| {res['frames']} | {res['frames_posed']} ({100 * (res['fraction_posed'] or 0):.1f} %) | "
                   f"{res['num_keyframes']} | {res['points3D']} | {res['points_per_image']:.0f} | "
                   f"{res['mean_reprojection_error_px']:.3f} | {res['fps']:.2f} |", ""]
+    cam = res.get("camera")
+    if isinstance(cam, dict) and cam.get("description"):
+        lines += [f"Camera: {cam['description']}.", ""]
     for key, caption in (("trajectory", "Trajectory against ground truth, coloured by position error"),
                          ("error_over_time", "Position error over time (grey lines: keyframes)"),
                          ("timings", "Time per pipeline stage")):

@@ -19,10 +19,11 @@ import numpy as np
 import pycolmap
 
 from ..camera import Intrinsics
-from ..config import SlamConfig
+from ..config import SlamConfig, _is_camera_path
 from ..errors import FormatError, SlamkitError
 from ..io.saved import check_run
 from ..io.trajectory import read_tum
+from ..sources.calibration import camera_from_path
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
 """Files of the COLMAP binary model a run folder must hold in ``sparse/``."""
@@ -112,7 +113,14 @@ def _camera(meta: dict | None, model: pycolmap.Reconstruction, source_camera: In
     """The images' intrinsics: the run's ``--camera``, else the source's, with the model camera's pinhole part."""
     cam = model.camera(next(iter(model.cameras)))
     text = ((meta or {}).get("config") or {}).get("camera") or ""
-    if text:
+    if text == "auto":  # estimated: the model holds it, and no distortion was known
+        base = Intrinsics(cam.width, cam.height, *cam.params[:4])
+    elif _is_camera_path(text):  # another run's camera.txt: its distortion, if it is still there
+        try:
+            base = camera_from_path(text, cam.width, cam.height)
+        except SlamkitError:
+            base = Intrinsics(cam.width, cam.height, *cam.params[:4])
+    elif text:
         base = Intrinsics.parse(text, cam.width, cam.height)
     elif source_camera is not None:
         base = source_camera

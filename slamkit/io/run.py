@@ -7,6 +7,7 @@ several):
 - ``keyframes_tum.txt`` keyframes only; ``trajectory_kitti.txt`` KITTI format (12 values per line)
 - ``sparse/`` COLMAP binary model (``pycolmap.Reconstruction(DIR / "sparse")``); ``points.ply``
 - ``summary.json`` timings, counts, Table-2 columns and the config; ``frames.csv`` one row per frame
+- ``camera.txt`` the intrinsics used (given, found or estimated; how, in its comment): ``--camera DIR`` reuses them
 - ``groundtruth_tum.txt`` the source's ground truth of the used frames, when it has one
 - ``session/`` everything ``Slam.resume(DIR)`` needs to continue the run (:mod:`slamkit.session`: COLMAP
   models of every segment, JSON state and ``.npz`` arrays, no pickle)
@@ -29,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..session import SESSION_DIR, write_session
+from ..sources.calibration import CAMERA_TXT, write_camera_txt
 from ..types import Trajectory
 from .atomic import atomic_dir
 from .run_dir import RUN_MARKER, SESSION_MARKER, check_out_dir, out_dir_lock, write_manifest
@@ -68,6 +70,9 @@ def _write_run(slam: "Slam", tmp: Path, session: bool) -> None:
         summary["errors"] = {str(k): v for k, v in sorted(errors.items())}
     (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2))
     (tmp / "frames.csv").write_text(_frames_csv(slam))
+    if getattr(slam, "camera", None) is not None:
+        write_camera_txt(tmp / CAMERA_TXT, slam.camera, f"the camera of this run: {_describe_camera(slam)}\n"
+                         "reuse it on another video from the same camera: slamkit run VIDEO --camera RUN_DIR")
     gt = _ground_truth(slam)
     if gt is not None and len(gt):
         write_tum(tmp / "groundtruth_tum.txt", gt)
@@ -89,6 +94,11 @@ def _write_segment(slam: "Slam", segment: int | None, folder: Path) -> None:
     (folder / "sparse").mkdir(exist_ok=True)
     rec.write_binary(str(folder / "sparse"))
     rec.export_PLY(str(folder / "points.ply"))
+
+
+def _describe_camera(slam) -> str:
+    describe = getattr(slam, "describe_camera", None)
+    return describe() if describe is not None else "the source's calibration"
 
 
 def _frames_csv(slam: "Slam") -> str:

@@ -12,7 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..camera import Intrinsics
-from ..errors import ConfigError, FormatError
+from ..errors import CalibrationError, ConfigError, FormatError
 
 CAMERA_TXT = "camera.txt"
 
@@ -47,3 +47,23 @@ def read_camera_txt(path: str | Path, width: int, height: int) -> Intrinsics:
         return Intrinsics.parse(text, width, height, where=f"{path}:{line}")
     except ConfigError as e:
         raise FormatError(path, line, str(e).split(": ", 1)[-1]) from None
+
+
+def camera_from_path(path: str | Path, width: int, height: int, where: str = "camera") -> Intrinsics:
+    """The intrinsics in a ``camera.txt``, given as the file or as the folder holding it (a run folder: runs
+    write the camera they used or estimated there); CalibrationError naming ``where`` and the path when there
+    is none."""
+    p = Path(path)
+    if p.is_dir():
+        p = p / CAMERA_TXT
+    if not p.is_file():
+        raise CalibrationError(f"{where}={str(path)!r}: no {CAMERA_TXT} there (give a run folder that holds one, a "
+                               "camera.txt file, 'auto', or the numbers F or FX,FY,CX,CY[,K1,K2,P1,P2[,K3]])")
+    return read_camera_txt(p, width, height)
+
+
+def write_camera_txt(path: str | Path, camera: Intrinsics, comment: str = "") -> None:
+    """Write ``camera`` as a ``camera.txt`` (``fx fy cx cy k1 k2 p1 p2 k3``), with ``#`` comment lines first."""
+    lines = [f"# {line}" for line in comment.splitlines() if line.strip()]
+    lines.append(" ".join(repr(float(v)) for v in (camera.fx, camera.fy, camera.cx, camera.cy, *camera.dist)))
+    Path(path).write_text("\n".join(lines) + "\n", encoding="utf-8")

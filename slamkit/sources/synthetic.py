@@ -30,6 +30,7 @@ city block, a 250 m loop: :mod:`slamkit.sources.block`). Parameters of every mot
     noise=SIGMA  Gaussian image noise in grey levels (default 0: noise-free)
     scale=K      image size factor of the camera (default 1; intrinsics scaled accordingly)
     wide=1       KITTI's camera, 1226x370 with fx = fy = 707 px (default 0: 640x480, fx = fy = 500 px)
+    focal=F      focal length in pixels (fx = fy = F) instead of the camera's own (self-calibration tests)
 
 plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
 ``jitter``, ``weave``, ``sway``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion
@@ -55,6 +56,7 @@ import os
 import shutil
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
@@ -184,7 +186,7 @@ class SyntheticSource(FrameSource):
 
 def synthetic_source(motion: str = "default", *, frames: int | None = None, seed: int = 0,
                      fps: float = DEFAULT_FPS, noise: float = 0.0, scale: float = 1.0, wide: int = 0,
-                     frame_skip: int = 1, max_frames: int | None = None, **motion_kw) -> SyntheticSource:
+                     focal: float | None = None, frame_skip: int = 1, max_frames: int | None = None, **motion_kw) -> SyntheticSource:
     """A :class:`SyntheticSource` for a named motion of :data:`MOTIONS` (in the default room) or of
     :data:`SCENE_MOTIONS` (in its own scene).
 
@@ -210,13 +212,18 @@ def synthetic_source(motion: str = "default", *, frames: int | None = None, seed
         raise ConfigError(f"wide must be 0 or 1 (got {wide})")
     camera = WIDE_CAMERA if wide else DEFAULT_CAMERA
     camera = camera if scale == 1 else camera.scaled(scale)
+    if focal is not None:
+        try:
+            camera = replace(camera, fx=float(focal), fy=float(focal))
+        except CalibrationError as e:
+            raise ConfigError(f"focal={focal:g}: {e}") from None
     poses = fn(**kw)
     label = motion if not motion_kw and frames is None else f"{motion}({len(poses)})"
     return SyntheticSource(make_scene(), poses, camera, fps=fps, seed=seed, noise=noise, frame_skip=frame_skip,
                            max_frames=max_frames, name=f"synthetic/{label}")
 
 
-_COMMON = ("frames", "seed", "fps", "noise", "scale", "wide")
+_COMMON = ("frames", "seed", "fps", "noise", "scale", "wide", "focal")
 
 
 def _motion(name: str) -> tuple[Callable[..., np.ndarray], Callable[[], Scene]]:

@@ -97,6 +97,8 @@ class BundleAdjuster:
         self._keyframes_at_last_global = 0
         self._steps = 0  # keyframes adjusted (step calls)
         self._starved = (0, 0.0)  # (step of the last starving keyframe, its angle)
+        self.refine_principal_point = False
+        """With ``refine_focal``: refine the principal point too (self-calibration)."""
 
     def state(self) -> dict[str, float]:
         """What the adjuster remembers between keyframes (when the last global BA ran, the last starving
@@ -124,9 +126,11 @@ class BundleAdjuster:
             return min(angle, self.config.min_tri_angle_deg)
         return self.config.min_tri_angle_deg
 
-    def _options(self, iterations: int) -> pycolmap.BundleAdjustmentOptions:
+    def _options(self, iterations: int, refine_focal: bool = False) -> pycolmap.BundleAdjustmentOptions:
         c = self.config
-        return bundle_adjustment_options(iterations, c.loss, c.refine_intrinsics, c.function_tolerance, c.num_threads)
+        return bundle_adjustment_options(iterations, c.loss, c.refine_intrinsics or refine_focal,
+                                         c.function_tolerance, c.num_threads,
+                                         refine_principal_point=refine_focal and self.refine_principal_point)
 
     def global_due(self, slam_map: SlamMap) -> bool:
         n = slam_map.num_keyframes
@@ -134,16 +138,19 @@ class BundleAdjuster:
         return (c.global_min_keyframes <= n <= c.global_max_keyframes
                 and n >= (1 + c.global_growth) * max(self._keyframes_at_last_global, 1))
 
-    def step(self, slam_map: SlamMap, image_id: int, starved_angle: float | None = None) -> BundleAdjustmentResult:
+    def step(self, slam_map: SlamMap, image_id: int, starved_angle: float | None = None,
+             refine_focal: bool = False) -> BundleAdjustmentResult:
         """Adjust after keyframe ``image_id`` was inserted: global when due, else local. starved_angle: the
-        keyframe's smaller triangulation angle when it was starving (see :meth:`filter_angle`), else None."""
+        keyframe's smaller triangulation angle when it was starving (see :meth:`filter_angle`), else None.
+        refine_focal: a global BA that refines the focal length too (self-calibration: a local window
+        constrains it too little), whatever ``refine_intrinsics`` says."""
         min_tri_angle_deg = self.filter_angle(starved_angle)
-        if self.global_due(slam_map):
-            return self.adjust_global(slam_map, min_tri_angle_deg=min_tri_angle_deg)
-        return self.adjust_local(slam_map, image_id, min_tri_angle_deg)
+        if refine_focal or self.global_due(slam_map):
+            return self.adjust_global(slam_map, min_tri_angle_deg=min_tri_angle_deg, refine_focal=refine_focal)
+        return self.adjust_local(slam_map, image_id, min_tri_angle_deg, refine_focal)
 
-    def adjust_local(self, slam_map: SlamMap, image_id: int, min_tri_angle_deg: float | None = None
-                     ) -> BundleAdjustmentResult:
+    def adjust_local(self, slam_map: SlamMap, image_id: int, min_tri_angle_deg: float | None = None,
+                     refine_focal: bool = False) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
         window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
         cfg = pycolmap.BundleAdjustmentConfig()
@@ -161,28 +168,28 @@ class BundleAdjuster:
             # the solve): on a 3,000-frame revisiting sequence that was most of local BA's time.
             if max_track <= 0 or point3D(p).track.length() <= max_track:
                 cfg.add_variable_point(p)
-        if not self.config.refine_intrinsics:
+        if not (self.config.refine_intrinsics or refine_focal):
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         if len(window) >= slam_map.num_keyframes:  # nothing outside the window holds the gauge
             cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
+            self._options(self.config.local_iterations, refine_focal), cfg, slam_map.reconstruction).solve()
         merged, completed, filtered = self._maintain(slam_map, set(window), min_tri_angle_deg)
         return BundleAdjustmentResult("local", len(window), len(points), str(summary.termination_type).split(".")[-1],
                                       merged, completed, filtered, time.perf_counter() - t0, None)
 
     def adjust_global(self, slam_map: SlamMap, normalize: bool | None = None,
-                      min_tri_angle_deg: float | None = None) -> BundleAdjustmentResult:
+                      min_tri_angle_deg: float | None = None, refine_focal: bool = False) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
         rec = slam_map.reconstruction
         cfg = pycolmap.BundleAdjustmentConfig()
         for i in slam_map.keyframes:
             cfg.add_image(i)
-        if not self.config.refine_intrinsics:
+        if not (self.config.refine_intrinsics or refine_focal):
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.global_iterations), cfg, rec).solve()
+            self._options(self.config.global_iterations, refine_focal), cfg, rec).solve()
         merged, completed, filtered = self._maintain(slam_map, None, min_tri_angle_deg)
         self._keyframes_at_last_global = slam_map.num_keyframes
         sim = None

@@ -177,6 +177,11 @@ class Initializer:
         pnp.ransac.random_seed = config.random_seed
         self._pnp_options = pnp
 
+    def set_camera(self, camera: Intrinsics) -> None:
+        """Initialize the next maps with this camera (self-calibration refined it)."""
+        self.camera = camera.pinhole
+        self._pycamera = pycolmap_camera(self.camera)
+
     @property
     def window(self) -> InitializerWindow:
         """The buffered frames and window matches (live lists, for sessions: do not change them)."""

@@ -1,0 +1,192 @@
+"""Self-calibration (issue 30): every sequence run twice, with its calibration and with ``camera="auto"``
+(the focal length estimated from the frames and the map, principal point at the image centre).
+
+Cases (:data:`CASES`): KITTI odometry 07 (160 frames, true focal 707.09 px, principal point 11 px left of
+the centre), 7-Scenes redkitchen (600 frames; the dataset's nominal 585 px), the driving clip (268 frames;
+``--camera 721`` as its known calibration, no ground truth), and rendered sequences with exact intrinsics:
+the hand-held room (150 frames) at focal lengths 0.5x, 1x and 2x the image width (320, 640, 1280 px), a drive round a
+city block (forward motion with four turns, 700 px) and pure forward motion (the degenerate case: the
+estimate must say it is weak). Seeds 0 .. N-1 go to ``SlamConfig.seed`` and to the synthetic spec's seed.
+
+Columns per run: posed (%) of all frames; ATE (m, Sim(3), largest segment); focal (px, the final camera of
+the run) and its error against the truth (%); first (px) the estimate from the first frames, its bootstrap
+uncertainty (%) and whether it was weak; wall seconds. Per case and mode: mean ± standard error over seeds.
+
+Output: a Markdown table on stdout and ``benchmarks/results/bench_self_calibration.csv`` (``--csv``).
+
+Usage::
+
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_self_calibration.py --seeds 3 --jobs 2
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_self_calibration.py --cases 'syn-*' --modes auto
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import csv  # noqa: E402
+import fnmatch  # noqa: E402
+import math  # noqa: E402
+import multiprocessing as mp  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import traceback  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_suite import DATA, RESULTS, mean_se  # noqa: E402
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    spec: str
+    """A path relative to ``../shared/data`` or a synthetic spec (``{seed}``: the run's seed)."""
+    focal: float
+    """The true focal length, px."""
+    known: str = ""
+    """``SlamConfig.camera`` of the calibrated run ("" = the source's own)."""
+    kw: dict = field(default_factory=dict)
+
+    def source_spec(self, seed: int) -> str:
+        return self.spec.format(seed=seed) if self.spec.startswith("synthetic:") else str(DATA / self.spec)
+
+
+_SYN = "&noise=1&seed={seed}"
+CASES = [
+    Case("kitti-07", "kitti-odometry", 707.0912, kw={"sequence": "07"}),
+    Case("7scenes", "7scenes-redkitchen", 585.0, kw={"max_frames": 600}),
+    Case("video-kitti984", "video/test_kitti984.mp4", 721.0, known="721"),
+    *(Case(f"syn-room-f{f}", f"synthetic:handheld?frames=150&focal={f}" + _SYN, float(f)) for f in (320, 640, 1280)),
+    Case("syn-block-f700", "synthetic:block-loop?frames=300&focal=700" + _SYN, 700.0),
+    Case("syn-forward", "synthetic:forward?frames=100" + _SYN, 500.0),
+]
+MODES = ("known", "auto", "auto-nofinal")
+"""known: the case's calibration; auto: ``camera="auto"``; auto-nofinal: the same without the final global
+BA's refinement of the focal length (``self_calibration.refine_final=false``)."""
+COLUMNS = ["row", "case", "mode", "seed", "status", "frames", "posed_pct", "ate_m", "focal", "focal_err_pct",
+           "first_focal", "first_uncertainty_pct", "first_weak", "wall_s", "error"]
+MEAN_KEYS = ["posed_pct", "ate_m", "focal", "focal_err_pct", "first_focal", "first_uncertainty_pct", "wall_s"]
+
+
+def _absent(case: Case) -> str | None:
+    if case.spec.startswith("synthetic:"):
+        return None
+    path = DATA / case.spec
+    return None if path.exists() else f"{path} not found"
+
+
+def run_one(job: tuple[Case, str, int]) -> dict:
+    case, mode, seed = job
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+    from slamkit import Slam, SlamConfig, SlamkitError, ate, open_source
+
+    row = {"row": "run", "case": case.name, "mode": mode, "seed": seed, "error": ""}
+    if (why := _absent(case)) is not None:
+        return row | {"status": "skipped", "error": why}
+    try:
+        t0 = time.perf_counter()
+        camera = "auto" if mode.startswith("auto") else case.known
+        extra = {"self_calibration.refine_final": False} if mode == "auto-nofinal" else {}
+        config = SlamConfig().with_overrides(seed=seed, camera=camera, **extra)
+        source = open_source(case.source_spec(seed), **case.kw)
+        slam = Slam(source, config)
+        slam.run()
+        s, traj, gt = slam.summary(), slam.trajectory(), source.ground_truth()
+        focal = float(slam.camera.fx)
+        row |= {"status": "ok", "frames": s["frames"], "posed_pct": 100.0 * s["frames_posed"] / s["frames"],
+                "focal": focal, "focal_err_pct": 100.0 * (focal / case.focal - 1), "wall_s": time.perf_counter() - t0}
+        first = slam.calibrator.initial if slam.calibrator is not None else None
+        if first is not None:
+            row |= {"first_focal": first.focal if math.isfinite(first.focal) else None,
+                    "first_uncertainty_pct": 100 * first.uncertainty if math.isfinite(first.uncertainty) else None,
+                    "first_weak": bool(first.weak)}
+        if gt is not None and len(traj) >= 3:
+            try:
+                row["ate_m"] = float(ate(gt, traj, align="sim3").rmse)
+            except SlamkitError as e:
+                row["error"] = f"ATE undefined: {e}"
+    except Exception as e:  # a failing run is a row of the table
+        traceback.print_exc()
+        return row | {"status": "error", "error": f"{type(e).__name__}: {e}"}
+    return row
+
+
+def case_rows(runs: list[dict]) -> list[dict]:
+    out = []
+    for key in dict.fromkeys((r["case"], r["mode"]) for r in runs):
+        rs = [r for r in runs if (r["case"], r["mode"]) == key and r["status"] == "ok"]
+        row = {"row": "case", "case": key[0], "mode": key[1], "seed": len(rs),
+               "status": "ok" if rs else next(r["status"] for r in runs if (r["case"], r["mode"]) == key)}
+        for k in MEAN_KEYS:
+            m, se = mean_se([r[k] for r in rs if r.get(k) is not None])
+            row[k], row[k + "_se"] = m, se
+        row["first_weak"] = sum(bool(r.get("first_weak")) for r in rs) if key[1] == "auto" else None
+        out.append(row)
+    return out
+
+
+def _cell(row: dict, key: str, fmt: str) -> str:
+    m, se = row.get(key), row.get(key + "_se")
+    if m is None:
+        return "-"
+    return f"{m:{fmt}}" + (f" ± {se:{fmt}}" if se else "")
+
+
+def markdown(rows: list[dict]) -> str:
+    lines = ["| case | mode | seeds | posed % | ATE (m) | focal (px) | focal error % | first frames (px) | "
+             "± % | weak |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['case']} | {r['mode']} | {r['seed']} | {_cell(r, 'posed_pct', '.1f')} | "
+                     f"{_cell(r, 'ate_m', '.4f')} | {_cell(r, 'focal', '.1f')} | {_cell(r, 'focal_err_pct', '.2f')} | "
+                     f"{_cell(r, 'first_focal', '.1f')} | {_cell(r, 'first_uncertainty_pct', '.1f')} | "
+                     f"{'-' if r['first_weak'] is None else r['first_weak']} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", help="comma-separated globs of case names (default: all)")
+    ap.add_argument("--modes", default=",".join(MODES), help=f"comma-separated of {', '.join(MODES)} (default all)")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--csv", type=Path, default=RESULTS / "bench_self_calibration.csv")
+    args = ap.parse_args(argv)
+    pats = args.cases.split(",") if args.cases else ["*"]
+    cases = [c for c in CASES if any(fnmatch.fnmatch(c.name, p.strip()) for p in pats)]
+    modes = [m.strip() for m in args.modes.split(",")]
+    jobs = [(c, m, s) for c in cases for m in modes for s in range(args.seeds)]
+    runs = []
+    pool = mp.get_context("spawn").Pool(args.jobs, maxtasksperchild=1)
+    try:
+        for r in pool.imap_unordered(run_one, jobs):
+            runs.append(r)
+            print(f"[{time.strftime('%H:%M:%S')}] {r['case']} {r['mode']} seed {r['seed']}: {r['status']} "
+                  + " ".join(f"{k}={r[k]:.4g}" if isinstance(r.get(k), float) else f"{k}={r.get(k)}"
+                             for k in ("posed_pct", "ate_m", "focal", "focal_err_pct", "first_focal", "first_weak")
+                             if k in r) + (f" {r['error']}" if r["error"] else ""), flush=True)
+    finally:
+        pool.close()  # workers exit on their own (terminating them mid-teardown makes pycolmap print a trace)
+        pool.join()
+    order = {(c.name, m, s): i for i, (c, m, s) in enumerate(jobs)}
+    runs.sort(key=lambda r: order[(r["case"], r["mode"], r["seed"])])
+    rows = case_rows(runs)
+    print(markdown(rows))
+    args.csv.parent.mkdir(parents=True, exist_ok=True)
+    with open(args.csv, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=COLUMNS + [k + "_se" for k in MEAN_KEYS], extrasaction="ignore")
+        w.writeheader()
+        w.writerows(runs + rows)
+    print(f"wrote {args.csv}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,356 @@
+"""Self-calibration: the focal length of an unknown camera, from the first frames and then the map.
+
+For videos and image folders without a calibration (``--camera auto``, the default when none is given or
+found). Two phases:
+
+1. **Before initialization** (:meth:`SelfCalibrator.step` on the first ``window_frames`` frames, then
+   :meth:`SelfCalibrator.estimate`): corners are tracked through the window with pyramidal Lucas-Kanade
+   (forward-backward checked), so any feature type works. Frame pairs far enough apart get a fundamental
+   matrix F (MAGSAC); with the principal point at the image centre and square pixels, the right focal
+   length ``f`` makes ``E = K^T F K`` an essential matrix, whose two non-zero singular values are equal
+   (Mendonca and Cipolla 1999). Each pair's cost ``(s1 - s2) / (s1 + s2)`` is summed over a logarithmic
+   grid of focal lengths; the minimum is the estimate, and its spread over pairs resampled with replacement
+   (bootstrap) is the uncertainty. Pairs explained as well by a homography (rotation about the centre, or a
+   plane) say nothing about ``f`` through F and are left out.
+2. **While mapping** (:meth:`SelfCalibrator.refining`, :meth:`SelfCalibrator.refined`): bundle adjustment
+   refines the focal length with the map (COLMAP's ``refine_focal_length``) until the map has
+   ``refine_keyframes`` keyframes, then it is frozen.
+
+Degenerate motions: pure translation (driving straight ahead, a forward walk) gives an F that is
+skew-symmetric for every focal length, and pure rotation gives a homography; over two views neither fixes
+``f``. Turns with translation, and many views in BA, do. A window without them yields a **weak** estimate
+(:attr:`FocalEstimate.weak` with its reason) rather than a confident wrong one; BA may still fix it later.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..errors import ConfigError
+
+
+@dataclass(frozen=True)
+class SelfCalibrationConfig:
+    window_frames: int = 60
+    """Frames (after frame skip) of the sequence start used for the first estimate."""
+    max_pairs: int = 60
+    """At most this many frame pairs enter the estimate (spread evenly over the window)."""
+    min_flow: float = 0.04
+    """A pair's frames are at least this far apart: median corner motion as a fraction of the image's
+    larger side."""
+    max_homography_ratio: float = 0.9
+    """Pairs whose homography inliers are at least this fraction of their F inliers are left out (rotation
+    or a plane: F says nothing about the focal length)."""
+    min_fov_deg: float = 15.0
+    """The focal lengths searched give fields of view (larger image side) from this ..."""
+    max_fov_deg: float = 150.0
+    """... to this."""
+    weak_uncertainty: float = 0.05
+    """An estimate whose relative uncertainty (bootstrap, one standard deviation) is above this is weak."""
+    min_refine_keyframes: int = 8
+    """Bundle adjustment refines the focal length only in maps of at least this many keyframes (a younger map,
+    built from little motion, pulls it anywhere)."""
+    refine_keyframes: int = 20
+    """When the first frames gave no usable estimate (weak): every keyframe's BA is global and refines the
+    focal length, from ``min_refine_keyframes`` until the map has this many keyframes. A usable first
+    estimate stays fixed while tracking: refined in every BA, the focal length of a forward-moving map wanders
+    by a few percent from keyframe to keyframe, and tracking is lost (KITTI 07)."""
+    refine_final: bool = True
+    """The final global BA (``ba.final_global``) refines the focal length of the main map."""
+    refine_principal_point: bool = False
+    """Bundle adjustment refines the principal point too (else it stays at the image centre)."""
+
+    def validate(self) -> None:
+        if self.window_frames < 2:
+            raise ConfigError(f"self_calibration.window_frames must be >= 2 (got {self.window_frames})")
+        if self.max_pairs < 1:
+            raise ConfigError(f"self_calibration.max_pairs must be >= 1 (got {self.max_pairs})")
+        if not 0 < self.min_flow < 1:
+            raise ConfigError(f"self_calibration.min_flow must be in (0, 1) (got {self.min_flow})")
+        if not 0 < self.max_homography_ratio <= 1:
+            raise ConfigError("self_calibration.max_homography_ratio must be in (0, 1] "
+                              f"(got {self.max_homography_ratio})")
+        if not 1 <= self.min_fov_deg < self.max_fov_deg <= 170:
+            raise ConfigError("self_calibration needs 1 <= min_fov_deg < max_fov_deg <= 170 "
+                              f"(got {self.min_fov_deg}, {self.max_fov_deg})")
+        if self.weak_uncertainty <= 0:
+            raise ConfigError(f"self_calibration.weak_uncertainty must be > 0 (got {self.weak_uncertainty})")
+        if self.refine_keyframes < 0:
+            raise ConfigError(f"self_calibration.refine_keyframes must be >= 0 (got {self.refine_keyframes})")
+        if not 3 <= self.min_refine_keyframes:
+            raise ConfigError(f"self_calibration.min_refine_keyframes must be >= 3 (got {self.min_refine_keyframes})")
+
+
+@dataclass(frozen=True)
+class FocalEstimate:
+    """The focal length (pixels, both axes) estimated from frame pairs, with its uncertainty."""
+
+    focal: float
+    uncertainty: float
+    """Relative standard deviation (bootstrap over the pairs); inf with fewer than 3 pairs."""
+    num_pairs: int
+    """Pairs that entered the estimate."""
+    num_frames: int
+    weak: bool
+    reason: str = ""
+    """Why the estimate is weak ("" when it is not)."""
+    grid: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    cost: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
+    """The summed cost over the focal lengths of ``grid`` (for plots)."""
+
+    def describe(self) -> str:
+        text = f"f={self.focal:.1f} px ± {100 * self.uncertainty:.1f} % from {self.num_pairs} frame pairs"
+        return text + (f" (weak: {self.reason})" if self.weak else "")
+
+
+def track_corners(grays: list[np.ndarray], max_corners: int = 1000) -> list[dict[int, np.ndarray]]:
+    """Corner tracks through consecutive frames: one ``{track id: (2,) xy}`` per frame. Lucas-Kanade with a
+    forward-backward check (0.5 px); lost corners are replaced by new ones when fewer than half are left."""
+    h, w = grays[0].shape[:2]
+    min_distance = max(5, int(round(max(w, h) / 80)))
+    lk = dict(winSize=(21, 21), maxLevel=4, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+    out: list[dict[int, np.ndarray]] = []
+    ids = np.zeros(0, np.int64)
+    xy = np.zeros((0, 2), np.float32)
+    next_id = 0
+    for k, g in enumerate(grays):
+        if k > 0 and len(xy):
+            p1, st1, _ = cv2.calcOpticalFlowPyrLK(grays[k - 1], g, xy.reshape(-1, 1, 2), None, **lk)
+            p0, st0, _ = cv2.calcOpticalFlowPyrLK(g, grays[k - 1], p1, None, **lk)
+            ok = (st1.ravel() == 1) & (st0.ravel() == 1)
+            ok &= np.linalg.norm(p0.reshape(-1, 2) - xy, axis=1) < 0.5
+            p1 = p1.reshape(-1, 2)
+            ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w) & (p1[:, 1] >= 0) & (p1[:, 1] < h)
+            ids, xy = ids[ok], p1[ok]
+        if len(xy) < max_corners // 2:
+            mask = np.full((h, w), 255, np.uint8)
+            for x, y in xy:
+                cv2.circle(mask, (int(x), int(y)), min_distance, 0, -1)
+            new = cv2.goodFeaturesToTrack(g, max_corners - len(xy), 0.01, min_distance, mask=mask)
+            if new is not None:
+                new = new.reshape(-1, 2).astype(np.float32)
+                ids = np.concatenate([ids, np.arange(next_id, next_id + len(new))])
+                xy = np.concatenate([xy, new])
+                next_id += len(new)
+        out.append(dict(zip(ids.tolist(), xy.astype(np.float64))))
+    return out
+
+
+def _pair_matches(a: dict[int, np.ndarray], b: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    common = sorted(set(a) & set(b))
+    if not common:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    return np.array([a[i] for i in common]), np.array([b[i] for i in common])
+
+
+def choose_pairs(tracks: list[dict[int, np.ndarray]], size: int, config: SelfCalibrationConfig
+                 ) -> list[tuple[int, int]]:
+    """Frame pairs (a, b), a < b: for each first frame a the nearest b whose corners moved ``min_flow`` of
+    the image (median) while at least 30 corners are common, and the one twice as far; at most
+    ``max_pairs``, spread evenly."""
+    pairs = []
+    for a in range(len(tracks)):
+        wanted = [config.min_flow * size, 2 * config.min_flow * size]
+        for b in range(a + 1, len(tracks)):
+            x1, x2 = _pair_matches(tracks[a], tracks[b])
+            if len(x1) < 30:
+                break
+            flow = float(np.median(np.linalg.norm(x2 - x1, axis=1)))
+            if wanted and flow >= wanted[0]:
+                pairs.append((a, b))
+                wanted.pop(0)
+                if not wanted:
+                    break
+    if len(pairs) > config.max_pairs:
+        keep = np.unique(np.linspace(0, len(pairs) - 1, config.max_pairs).round().astype(int))
+        pairs = [pairs[i] for i in keep]
+    return pairs
+
+
+def focal_grid(width: int, height: int, config: SelfCalibrationConfig, num: int = 600) -> np.ndarray:
+    """Focal lengths searched, log-spaced between the fields of view of ``config``."""
+    half = max(width, height) / 2.0
+    lo = half / math.tan(math.radians(config.max_fov_deg / 2))
+    hi = half / math.tan(math.radians(config.min_fov_deg / 2))
+    return np.geomspace(lo, hi, num)
+
+
+def essential_cost(F: np.ndarray, grid: np.ndarray, cx: float, cy: float) -> np.ndarray:
+    """(len(grid),) cost of each focal length for one fundamental matrix: ``(s1 - s2) / (s1 + s2)`` of the
+    singular values of ``K^T F K`` (0 for an essential matrix)."""
+    K = np.zeros((len(grid), 3, 3))
+    K[:, 0, 0] = K[:, 1, 1] = grid
+    K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = cx, cy, 1.0
+    E = np.transpose(K, (0, 2, 1)) @ F @ K
+    s = np.linalg.svd(E, compute_uv=False)
+    return (s[:, 0] - s[:, 1]) / np.maximum(s[:, 0] + s[:, 1], 1e-300)
+
+
+def _argmin_log(grid: np.ndarray, cost: np.ndarray) -> float:
+    """The minimum of ``cost`` over ``grid``, refined by a parabola through its neighbours in log f."""
+    k = int(np.argmin(cost))
+    if 0 < k < len(grid) - 1:
+        y0, y1, y2 = cost[k - 1], cost[k], cost[k + 1]
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            step = math.log(grid[k + 1] / grid[k])
+            return float(grid[k] * math.exp(0.5 * (y0 - y2) / den * step))
+    return float(grid[k])
+
+
+def estimate_focal(grays: list[np.ndarray], config: SelfCalibrationConfig = SelfCalibrationConfig(),
+                   seed: int = 0) -> FocalEstimate:
+    """The focal length of the camera of ``grays`` (consecutive grey frames), principal point at the centre;
+    see the module docstring."""
+    h, w = grays[0].shape[:2]
+    cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
+    grid = focal_grid(w, h, config)
+    tracks = track_corners(grays)
+    costs = []
+    for a, b in choose_pairs(tracks, max(w, h), config):
+        x1, x2 = _pair_matches(tracks[a], tracks[b])
+        F, inl = cv2.findFundamentalMat(x1, x2, cv2.USAC_MAGSAC, 1.0, 0.999, 10000)
+        if F is None or F.shape != (3, 3) or inl is None or int(inl.sum()) < 20:
+            continue
+        H, hin = cv2.findHomography(x1, x2, cv2.USAC_MAGSAC, 1.0, confidence=0.999, maxIters=10000)
+        if H is not None and hin is not None and hin.sum() >= config.max_homography_ratio * inl.sum():
+            continue
+        costs.append(essential_cost(F, grid, cx, cy))
+    n = len(costs)
+    if n == 0:
+        return FocalEstimate(float("nan"), math.inf, 0, len(grays), True,
+                             "no frame pair with enough motion that is not a rotation or a plane", grid,
+                             np.zeros(len(grid)))
+    costs = np.array(costs)
+    total = costs.sum(axis=0)
+    focal = _argmin_log(grid, total)
+    rng = np.random.default_rng(seed)
+    boot = [_argmin_log(grid, costs[rng.integers(0, n, n)].sum(axis=0)) for _ in range(200)] if n >= 3 else []
+    uncertainty = float(np.std(np.log(boot))) if boot else math.inf
+    reason = ""
+    if n < 3:
+        reason = f"only {n} informative frame pair{'s' if n != 1 else ''}"
+    elif not grid[1] < focal < grid[-2]:
+        reason = (f"the best focal length is at the end of the range searched ({config.min_fov_deg:g}-"
+                  f"{config.max_fov_deg:g} degrees of view)")
+    elif uncertainty > config.weak_uncertainty:
+        reason = (f"±{100 * uncertainty:.0f} %: the frames barely constrain it (motion mostly straight ahead "
+                  "or mostly rotation)")
+    return FocalEstimate(focal, uncertainty, n, len(grays), bool(reason), reason, grid, total)
+
+
+WEAK_FALLBACK_UNCERTAINTY = 0.2
+"""A weak estimate more uncertain than this (or outside the range searched) is not used: the run starts from
+the documented guess (focal 1.2 x the larger image side) and bundle adjustment refines from there."""
+
+
+@dataclass(frozen=True)
+class CalibrationStep:
+    """The focal length after one keyframe's bundle adjustment (for plots of the estimate converging)."""
+
+    num_keyframes: int
+    focal: float
+
+
+class SelfCalibrator:
+    """The two phases of the module docstring for one run: :meth:`step` collects the first frames,
+    :meth:`estimate` gives the starting focal length, then :meth:`refining` says whether a keyframe's bundle
+    adjustment refines it, and :meth:`refined` records the result until :attr:`frozen`."""
+
+    def __init__(self, config: SelfCalibrationConfig = SelfCalibrationConfig(), seed: int = 0):
+        config.validate()
+        self.config, self.seed = config, seed
+        self.grays: list[np.ndarray] = []
+        self.initial: FocalEstimate | None = None
+        """The estimate from the first frames (phase 1), once made."""
+        self.focal: float | None = None
+        """The focal length in use (pixels)."""
+        self.history: list[CalibrationStep] = []
+        self.frozen = False
+
+    def step(self, gray: np.ndarray) -> bool:
+        """Take the next frame of the window (grey); True when the window is full."""
+        if len(self.grays) < self.config.window_frames:
+            self.grays.append(gray)
+        return len(self.grays) >= self.config.window_frames
+
+    def estimate(self, guess: float) -> FocalEstimate:
+        """Phase 1 over the frames given to :meth:`step`; :attr:`focal` becomes the estimate, or ``guess``
+        when it is too weak to use (:data:`WEAK_FALLBACK_UNCERTAINTY`)."""
+        if len(self.grays) < 2:
+            est = FocalEstimate(float("nan"), math.inf, 0, len(self.grays), True, "fewer than 2 frames")
+        else:
+            est = estimate_focal(self.grays, self.config, self.seed)
+        self.grays = []
+        self.initial = est
+        usable = math.isfinite(est.focal) and est.uncertainty <= WEAK_FALLBACK_UNCERTAINTY and (
+            "end of the range" not in est.reason)
+        self.focal = est.focal if usable else float(guess)
+        self.history = [CalibrationStep(0, self.focal)]
+        self.frozen = False
+        return est
+
+    @property
+    def used_initial(self) -> bool:
+        """Whether the run started from the first frames' estimate (else from the guess)."""
+        return self.initial is not None and len(self.history) > 0 and self.history[0].focal == self.initial.focal
+
+    def refining(self, num_keyframes: int, final: bool = False) -> bool:
+        """Whether a bundle adjustment of a map of ``num_keyframes`` refines the focal length: while
+        tracking only when the first frames gave no usable estimate, until ``refine_keyframes``; the
+        ``final`` global BA when ``refine_final``."""
+        if num_keyframes < self.config.min_refine_keyframes or self.initial is None:
+            return False
+        if final:
+            return self.config.refine_final
+        return not self.frozen and not (self.used_initial and not self.initial.weak)
+
+    def refined(self, focal: float, num_keyframes: int, final: bool = False) -> None:
+        """Record the focal length after a refining bundle adjustment; refinement while tracking stops from
+        ``refine_keyframes`` on, and after the ``final`` one."""
+        self.focal = float(focal)
+        self.history.append(CalibrationStep(int(num_keyframes), self.focal))
+        if final or num_keyframes >= self.config.refine_keyframes:
+            self.frozen = True
+
+    @property
+    def weak(self) -> bool:
+        """The estimate is weak: phase 1 was, and bundle adjustment has not refined it over at least
+        ``min_refine_keyframes`` keyframes."""
+        return self.initial is None or (self.initial.weak and len(self.history) <= 1)
+
+    def describe(self) -> str:
+        """One line: the focal length in use and how it was obtained."""
+        if self.initial is None:
+            return "to be estimated from the first frames"
+        est = self.initial
+        first = est.describe() if math.isfinite(est.focal) else f"no estimate ({est.reason})"
+        if len(self.history) <= 1:
+            used = "" if self.focal == est.focal else f"; starting from the guess f={self.focal:.1f} px"
+            return f"estimated {first}{used}"
+        n = self.history[-1].num_keyframes
+        state = "frozen" if self.frozen else "refining"
+        return f"estimated f={self.focal:.1f} px (bundle adjustment over {n} keyframes, {state}; first frames: {first})"
+
+    def state(self) -> dict:
+        """What a session saves."""
+        est = self.initial
+        return {"initial": None if est is None else {
+                    "focal": est.focal, "uncertainty": est.uncertainty, "num_pairs": est.num_pairs,
+                    "num_frames": est.num_frames, "weak": est.weak, "reason": est.reason},
+                "focal": self.focal, "frozen": self.frozen,
+                "history": [[s.num_keyframes, s.focal] for s in self.history]}
+
+    def restore(self, state: dict) -> None:
+        init = state.get("initial")
+        self.initial = None if init is None else FocalEstimate(
+            float(init["focal"]), float(init["uncertainty"]), int(init["num_pairs"]), int(init["num_frames"]),
+            bool(init["weak"]), str(init["reason"]))
+        self.focal = None if state.get("focal") is None else float(state["focal"])
+        self.frozen = bool(state.get("frozen", False))
+        self.history = [CalibrationStep(int(k), float(f)) for k, f in state.get("history", [])]
+        self.grays = []
