@@ -42,7 +42,7 @@ MANIFEST_VERSION = 1
 
 RUN_ENTRIES = frozenset({
     RUN_MARKER, "trajectory_tum.txt", "keyframes_tum.txt", "trajectory_kitti.txt", "sparse", "points.ply",
-    "summary.json", "frames.csv", "groundtruth_tum.txt", "session", "segments",
+    "summary.json", "frames.csv", "camera.txt", "groundtruth_tum.txt", "session", "segments",
     # written later by `slamkit eval` into the run folder
     "report.md", "report.html", "evaluation.json", "plots", "map.html"})
 """Top-level names a slamkit run folder may hold: anything else is the user's, and the folder is not replaced."""

@@ -6,15 +6,18 @@ found). Two phases:
 1. **Before initialization** (:meth:`SelfCalibrator.step` on the first ``window_frames`` frames, then
    :meth:`SelfCalibrator.estimate`): corners are tracked through the window with pyramidal Lucas-Kanade
    (forward-backward checked), so any feature type works. Frame pairs far enough apart get a fundamental
-   matrix F (MAGSAC); with the principal point at the image centre and square pixels, the right focal
-   length ``f`` makes ``E = K^T F K`` an essential matrix, whose two non-zero singular values are equal
-   (Mendonca and Cipolla 1999). Each pair's cost ``(s1 - s2) / (s1 + s2)`` is summed over a logarithmic
-   grid of focal lengths; the minimum is the estimate, and its spread over pairs resampled with replacement
+   matrix F (MAGSAC, then least squares on its inliers, which halves the bias of RANSAC's F on rendered
+   sequences); with the principal point at the image centre and square pixels, the right focal length
+   ``f`` makes ``E = K^T F K`` an essential matrix, whose two non-zero singular values are equal (Mendonca
+   and Cipolla 1999). Each pair's cost ``(s1 - s2) / (s1 + s2)`` is summed over a logarithmic grid of
+   focal lengths; the minimum is the estimate, and its spread over pairs resampled with replacement
    (bootstrap) is the uncertainty. Pairs explained as well by a homography (rotation about the centre, or a
    plane) say nothing about ``f`` through F and are left out.
-2. **While mapping** (:meth:`SelfCalibrator.refining`, :meth:`SelfCalibrator.refined`): bundle adjustment
-   refines the focal length with the map (COLMAP's ``refine_focal_length``) until the map has
-   ``refine_keyframes`` keyframes, then it is frozen.
+2. **While mapping** (:meth:`SelfCalibrator.refining`, :meth:`SelfCalibrator.refined`): the final global
+   bundle adjustment refines the focal length with the whole map (COLMAP's ``refine_focal_length``); after
+   a weak first estimate, every keyframe's BA does from ``min_refine_keyframes`` to ``refine_keyframes``
+   keyframes. An estimate from the first frames that is not weak stays fixed while tracking: refined at
+   every keyframe, the focal length of a forward-moving map wanders by percents and tracking is lost.
 
 Degenerate motions: pure translation (driving straight ahead, a forward walk) gives an F that is
 skew-symmetric for every focal length, and pure rotation gives a homography; over two views neither fixes
@@ -219,7 +222,9 @@ def estimate_focal(grays: list[np.ndarray], config: SelfCalibrationConfig = Self
         H, hin = cv2.findHomography(x1, x2, cv2.USAC_MAGSAC, 1.0, confidence=0.999, maxIters=10000)
         if H is not None and hin is not None and hin.sum() >= config.max_homography_ratio * inl.sum():
             continue
-        costs.append(essential_cost(F, grid, cx, cy))
+        inliers = inl.ravel() == 1  # least squares on the inliers (normalized 8-point): less biased than RANSAC's F
+        F8, _ = cv2.findFundamentalMat(x1[inliers], x2[inliers], cv2.FM_8POINT)
+        costs.append(essential_cost(F8[:3] if F8 is not None and F8.shape[0] >= 3 else F, grid, cx, cy))
     n = len(costs)
     if n == 0:
         return FocalEstimate(float("nan"), math.inf, 0, len(grays), True,

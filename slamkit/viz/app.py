@@ -37,7 +37,7 @@ from ..sources import open_source
 from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
-from .explain import flow_help_html, scale_html
+from .explain import camera_html, flow_help_html, scale_html
 from .meshcat_view import MapView
 from .settings import ViewSettings
 
@@ -471,7 +471,9 @@ class SlamApp(AppWidgets):
         """The keyframe rule with the running thresholds in pixels, and the 3D view's sizes in map units."""
         kf = self.slam.config.keyframes
         camera = getattr(self.slam, "camera", None) or self.slam.source.camera  # the config's intrinsics, if given
-        self.w_help.value = flow_help_html(float(camera.fx), kf.flow_threshold, kf.min_tracked_matches)
+        describe = getattr(self.slam, "describe_camera", None)
+        self.w_help.value = (flow_help_html(float(camera.fx), kf.flow_threshold, kf.min_tracked_matches)
+                             + (camera_html(describe()) if describe is not None else ""))
         sc = self.view.scale_numbers()
         self.v_units.value = (scale_html(sc["extent"], sc["frustum_depth"], sc["point_diameter"], sc["view_depth"])
                               if len(self.view.keyframe_ids) else "")

@@ -75,6 +75,12 @@ def flow_help_html(focal_px: float, threshold: float, min_matches: int) -> str:
             f'length, <b>{px:.0f} px</b> here (f = {focal_px:.0f} px).</div>')
 
 
+def camera_html(description: str) -> str:
+    """The camera used and how it was obtained (given, found in a file, or estimated), one line."""
+    return (f'<div class="slamkit-camera" style="color:#444;font-size:90%;max-width:640px"><b>camera</b>: '
+            f'{html.escape(description)}</div>')
+
+
 def scale_html(extent: float, frustum_depth: float, point_diameter: float, view_depth: float) -> str:
     """Frustum depth and point diameter in map units, and what a map unit is (all arguments map units)."""
     return (f'<div class="slamkit-units" style="color:#444;font-size:90%;max-width:640px">'
