@@ -10,6 +10,7 @@ Everything the run has done lives in :attr:`Slam.state`; the attributes below it
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -290,7 +291,8 @@ class Slam:
             except (ImageReadError, CalibrationError):  # the run skips it with its reason later
                 continue
             cal.step(frame.gray)
-        cal.estimate(Intrinsics.from_focal(self.camera.width, self.camera.height).fx)
+        w, h, fov = self.camera.width, self.camera.height, cal.config.fallback_fov_deg
+        cal.estimate(Intrinsics.from_focal(w, h).fx if not fov else max(w, h) / 2 / math.tan(math.radians(fov / 2)))
         self._use_focal(cal.focal)
         self.state.add_timings({"calibrate": time.perf_counter() - t})
         self.state.wall_time += time.perf_counter() - t

@@ -79,6 +79,11 @@ def test_forward_motion_is_reported_weak_and_the_run_starts_from_the_guess():
     assert est.weak and est.reason, est.describe()
     assert cal.focal == 768.0 and cal.weak
     assert "weak" in cal.describe()
+    # the run starts from a 65-degree field of view, and says why
+    slam = Slam("synthetic:forward?frames=40", CONFIG.with_overrides(**{"self_calibration.window_frames": 40}))
+    slam.calibrate()
+    assert slam.camera.fx == pytest.approx(320 / math.tan(math.radians(32.5)))
+    assert "weak" in slam.describe_camera() and "not used: starting from f=502.3 px" in slam.describe_camera()
 
 
 def test_a_window_of_one_frame_is_no_estimate():

@@ -162,7 +162,8 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | str | None = N
         camera: :class:`Intrinsics`, a focal length in pixels, a ``--camera`` text, or None: then the
             folder's ``camera.txt`` when there is one (:mod:`~slamkit.sources.calibration`), else **a
             guess**: ``Intrinsics.from_focal(w, h)`` (focal 1.2 x max(w, h), principal point at the centre,
-            no distortion) with (w, h) read off the first image.
+            no distortion) with (w, h) read off the first image, which ``Slam`` replaces by an estimate
+            (:mod:`slamkit.stages.self_calibration`).
         fps: frame rate; timestamps are ``frame index / fps`` seconds (the index before frame skip).
         pattern: optional glob relative to the folder (``"*.png"``, ``"cam0/*.jpg"``).
         groundtruth: optional TUM-format file (``timestamp tx ty tz qx qy qz qw``, camera-to-world) in the

@@ -158,7 +158,8 @@ def open_video(path: str | Path, *, camera: Intrinsics | float | str | None = No
     Args:
         camera: :class:`Intrinsics`, a focal length in pixels or a ``--camera`` text; else a ``camera.txt``
             beside the video file, else the documented guess ``Intrinsics.from_focal(w, h)`` (focal
-            1.2 x max(w, h), principal point at the centre).
+            1.2 x max(w, h), principal point at the centre), which ``Slam`` replaces by an estimate
+            (:mod:`slamkit.stages.self_calibration`).
         fps: override the container's frame rate; timestamps are ``frame number / fps`` seconds (fallback
             30 fps when the container reports none).
         exact_count: count frames by grabbing through the video instead of trusting the container.
