@@ -81,8 +81,8 @@ def _absent(case: Case) -> str | None:
     return None if path.exists() else f"{path} not found"
 
 
-def run_one(job: tuple[Case, str, int]) -> dict:
-    case, mode, seed = job
+def run_one(job: tuple[Case, str, int, dict]) -> dict:
+    case, mode, seed, overrides = job
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
@@ -95,7 +95,7 @@ def run_one(job: tuple[Case, str, int]) -> dict:
         t0 = time.perf_counter()
         camera = "auto" if mode.startswith("auto") else case.known
         extra = {"self_calibration.refine_final": False} if mode == "auto-nofinal" else {}
-        config = SlamConfig().with_overrides(seed=seed, camera=camera, **extra)
+        config = SlamConfig().with_overrides(seed=seed, camera=camera, **extra, **overrides)
         source = open_source(case.source_spec(seed), **case.kw)
         slam = Slam(source, config)
         slam.run()
@@ -158,11 +158,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--csv", type=Path, default=RESULTS / "bench_self_calibration.csv")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for every run, e.g. --set initializer.window_overlap=0.3")
     args = ap.parse_args(argv)
     pats = args.cases.split(",") if args.cases else ["*"]
     cases = [c for c in CASES if any(fnmatch.fnmatch(c.name, p.strip()) for p in pats)]
     modes = [m.strip() for m in args.modes.split(",")]
-    jobs = [(c, m, s) for c in cases for m in modes for s in range(args.seeds)]
+    overrides = dict(item.split("=", 1) for item in args.set)
+    jobs = [(c, m, s, overrides) for c in cases for m in modes for s in range(args.seeds)]
     runs = []
     pool = mp.get_context("spawn").Pool(args.jobs, maxtasksperchild=1)
     try:
@@ -175,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         pool.close()  # workers exit on their own (terminating them mid-teardown makes pycolmap print a trace)
         pool.join()
-    order = {(c.name, m, s): i for i, (c, m, s) in enumerate(jobs)}
+    order = {(c.name, m, s): i for i, (c, m, s, _) in enumerate(jobs)}
     runs.sort(key=lambda r: order[(r["case"], r["mode"], r["seed"])])
     rows = case_rows(runs)
     print(markdown(rows))
