@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from .ablate import STATUS_LOST, STATUS_OK, check_sweep_args, connect, markdown_table, parse_grid, plan, sweep
 from .camera import parse_camera_values
-from .config import PRESETS, SlamConfig, _is_camera_path
+from .config import PRESETS, SlamConfig, is_camera_path
 from .errors import SlamkitError
 from .eval import evaluate
 from .eval.report import check_posed, evaluate_run
@@ -74,7 +74,7 @@ def _overrides_from_args(args: argparse.Namespace) -> dict:
                                           "seed")
             if getattr(args, k) is not None}
     if args.camera is not None and args.camera != "auto":  # "" given explicitly is a mistake
-        if _is_camera_path(args.camera):
+        if is_camera_path(args.camera):
             if not Path(args.camera).exists():
                 raise SlamkitError(f"--camera {args.camera}: no such run folder or camera.txt")
         else:

@@ -107,7 +107,7 @@ class SlamConfig:
             raise ConfigError(f"frame_skip must be >= 1 (got {self.frame_skip})")
         if self.max_frames is not None and self.max_frames < 1:
             raise ConfigError(f"max_frames must be >= 1 or None (got {self.max_frames})")
-        if self.camera and self.camera != "auto" and not _is_camera_path(self.camera):
+        if self.camera and self.camera != "auto" and not is_camera_path(self.camera):
             parse_camera_values(self.camera, "camera")
         if self.max_lost_frames < 1:
             raise ConfigError(f"max_lost_frames must be >= 1 (got {self.max_lost_frames})")
@@ -240,7 +240,7 @@ Choosing a pipeline sets every setting any pipeline tunes (the others' to their 
 ``--set``) override the pipeline's."""
 
 
-def _is_camera_path(text: str) -> bool:
+def is_camera_path(text: str) -> bool:
     """Whether a camera text names a file or folder (a ``camera.txt``, or a run folder holding one) rather than
     numbers: it has a path separator, ends in ``.txt`` or exists."""
     return "/" in text or "\\" in text or text.endswith(".txt") or os.path.exists(text)

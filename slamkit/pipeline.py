@@ -19,7 +19,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .camera import Intrinsics, focal_range
-from .config import SlamConfig, _is_camera_path
+from .config import SlamConfig, is_camera_path
 from .errors import CalibrationError, ImageReadError, check_type
 from .features import FrameFeatures, create_extractor, create_matcher
 from .frames import FrameLoader, thumbnail
@@ -100,7 +100,7 @@ class Slam:
         self.source_spec = str(source) if isinstance(source, (str, Path)) else None
         """How the source was opened (a path or spec), recorded in sessions so ``Slam.resume`` can reopen it."""
         if isinstance(source, (str, Path)):
-            numbers = config.camera if config.camera and config.camera != "auto" and not _is_camera_path(
+            numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
                 config.camera) else None  # "auto" and a camera.txt are applied by reset()
             source = open_source(str(source), camera=numbers)
         self.source = source
@@ -126,7 +126,7 @@ class Slam:
             self.camera = Intrinsics.from_focal(w, h)  # until calibrate(): no distortion is known
             self.calibrator = SelfCalibrator(c.self_calibration, c.seed)
             self.camera_origin = "estimated"
-        elif c.camera and _is_camera_path(c.camera):  # a run folder or camera.txt: another run's camera
+        elif c.camera and is_camera_path(c.camera):  # a run folder or camera.txt: another run's camera
             self.camera = camera_from_path(c.camera, w, h, "camera")
             self.camera_origin = f"from {c.camera}"
         elif c.camera:  # the user's intrinsics instead of the source's
@@ -141,8 +141,7 @@ class Slam:
         self.selector = KeyframeSelector(c.keyframes)
         self.mapper = Mapper(c.mapper, matcher)
         self.local_mapper = LocalMapper(c.local_mapping, c.mapper.min_keyframe_points)
-        self.bundle_adjuster = BundleAdjuster(c.ba)
-        self.bundle_adjuster.refine_principal_point = c.self_calibration.refine_principal_point
+        self.bundle_adjuster = BundleAdjuster(c.ba, c.self_calibration.refine_principal_point)
         k = c.keyframes
         self.culler = KeyframeCuller(KeyframeCullingConfig(k.cull_redundant, k.cull_min_observers, k.cull_keep_recent,
                                                            c.ba.local_window, max(RETRACK_BELOW_KEYFRAMES, 4)))

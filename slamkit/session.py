@@ -359,7 +359,9 @@ def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
     if cal is not None and slam.calibrator is not None:  # the estimate goes on from where it was
         slam.calibrator.restore(cal)
         if slam.calibrator.focal is not None:
-            slam._use_focal(slam.calibrator.focal)
+            seg = slam.state.segment or slam.state.main_segment  # its map holds the principal point in use
+            cam = seg.slam_map.camera if seg is not None else slam.camera
+            slam._use_focal(slam.calibrator.focal, cam.cx, cam.cy)
     slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(

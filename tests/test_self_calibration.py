@@ -91,6 +91,10 @@ def test_a_window_of_one_frame_is_no_estimate():
     cal.step(np.zeros((48, 64), np.uint8))
     est = cal.estimate(guess=77.0)
     assert est.weak and not math.isfinite(est.focal) and cal.focal == 77.0
+    saved = json.loads(json.dumps(cal.state(), allow_nan=False))  # strict JSON: no inf or NaN in summaries
+    other = SelfCalibrator()
+    other.restore(saved)
+    assert other.initial.uncertainty == math.inf and math.isnan(other.initial.focal) and other.focal == 77.0
 
 
 # ----------------------------------------------------------------------------------------------- whole runs

@@ -19,7 +19,7 @@ import numpy as np
 import pycolmap
 
 from ..camera import Intrinsics
-from ..config import SlamConfig, _is_camera_path
+from ..config import SlamConfig, is_camera_path
 from ..errors import FormatError, SlamkitError
 from ..io.saved import check_run
 from ..io.trajectory import read_tum
@@ -115,7 +115,7 @@ def _camera(meta: dict | None, model: pycolmap.Reconstruction, source_camera: In
     text = ((meta or {}).get("config") or {}).get("camera") or ""
     if text == "auto":  # estimated: the model holds it, and no distortion was known
         base = Intrinsics(cam.width, cam.height, *cam.params[:4])
-    elif _is_camera_path(text):  # another run's camera.txt: its distortion, if it is still there
+    elif is_camera_path(text):  # another run's camera.txt: its distortion, if it is still there
         try:
             base = camera_from_path(text, cam.width, cam.height)
         except SlamkitError:

@@ -91,13 +91,13 @@ class BundleAdjustmentResult:
 class BundleAdjuster:
     """Local / global bundle adjustment of a :class:`SlamMap`, then track maintenance and filtering."""
 
-    def __init__(self, config: BundleAdjustmentConfig = BundleAdjustmentConfig()):
+    def __init__(self, config: BundleAdjustmentConfig = BundleAdjustmentConfig(), refine_principal_point: bool = False):
         config.validate()
         self.config = config
         self._keyframes_at_last_global = 0
         self._steps = 0  # keyframes adjusted (step calls)
         self._starved = (0, 0.0)  # (step of the last starving keyframe, its angle)
-        self.refine_principal_point = False
+        self.refine_principal_point = refine_principal_point
         """With ``refine_focal``: refine the principal point too (self-calibration)."""
 
     def state(self) -> dict[str, float]:

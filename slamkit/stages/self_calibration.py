@@ -353,7 +353,7 @@ class SelfCalibrator:
         """What a session saves."""
         est = self.initial
         return {"initial": None if est is None else {
-                    "focal": est.focal, "uncertainty": est.uncertainty, "num_pairs": est.num_pairs,
+                    "focal": _finite(est.focal), "uncertainty": _finite(est.uncertainty), "num_pairs": est.num_pairs,
                     "num_frames": est.num_frames, "weak": est.weak, "reason": est.reason},
                 "focal": self.focal, "frozen": self.frozen,
                 "history": [[s.num_keyframes, s.focal] for s in self.history]}
@@ -361,9 +361,19 @@ class SelfCalibrator:
     def restore(self, state: dict) -> None:
         init = state.get("initial")
         self.initial = None if init is None else FocalEstimate(
-            float(init["focal"]), float(init["uncertainty"]), int(init["num_pairs"]), int(init["num_frames"]),
+            _number(init["focal"], math.nan), _number(init["uncertainty"], math.inf), int(init["num_pairs"]),
+            int(init["num_frames"]),
             bool(init["weak"]), str(init["reason"]))
         self.focal = None if state.get("focal") is None else float(state["focal"])
         self.frozen = bool(state.get("frozen", False))
         self.history = [CalibrationStep(int(k), float(f)) for k, f in state.get("history", [])]
         self.grays = []
+
+
+def _finite(x: float) -> float | None:
+    """``x``, or None when it is not finite (strict JSON has no inf or NaN)."""
+    return float(x) if math.isfinite(x) else None
+
+
+def _number(x: float | None, default: float) -> float:
+    return default if x is None else float(x)
