@@ -314,12 +314,10 @@ class Slam:
 
     def _refined(self, slam_map: SlamMap, final: bool = False) -> None:
         """After a refining BA: one focal length for both axes, used from now on, and recorded."""
-        lo, hi = focal_range(self.camera.width, self.camera.height)
-        cam = slam_map.pycolmap_camera
-        focal = min(max(0.5 * (float(cam.params[0]) + float(cam.params[1])), lo * 1.001), hi * 0.999)
-        slam_map.set_focal(focal)
-        self.calibrator.refined(focal, slam_map.num_keyframes, final)
-        self._use_focal(focal, float(cam.params[2]), float(cam.params[3]))
+        fx, fy, cx, cy = (float(v) for v in slam_map.pycolmap_camera.params)
+        self._use_focal(0.5 * (fx + fy), cx, cy)  # kept within the sane range
+        slam_map.set_focal(self.camera.fx)
+        self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final)
 
     # ----------------------------------------------------------------- initialization
     def _initialize(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:

@@ -147,10 +147,10 @@ class BundleAdjuster:
         min_tri_angle_deg = self.filter_angle(starved_angle)
         if refine_focal or self.global_due(slam_map):
             return self.adjust_global(slam_map, min_tri_angle_deg=min_tri_angle_deg, refine_focal=refine_focal)
-        return self.adjust_local(slam_map, image_id, min_tri_angle_deg, refine_focal)
+        return self.adjust_local(slam_map, image_id, min_tri_angle_deg)
 
-    def adjust_local(self, slam_map: SlamMap, image_id: int, min_tri_angle_deg: float | None = None,
-                     refine_focal: bool = False) -> BundleAdjustmentResult:
+    def adjust_local(self, slam_map: SlamMap, image_id: int, min_tri_angle_deg: float | None = None
+                     ) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
         window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
         cfg = pycolmap.BundleAdjustmentConfig()
@@ -168,12 +168,12 @@ class BundleAdjuster:
             # the solve): on a 3,000-frame revisiting sequence that was most of local BA's time.
             if max_track <= 0 or point3D(p).track.length() <= max_track:
                 cfg.add_variable_point(p)
-        if not (self.config.refine_intrinsics or refine_focal):
+        if not self.config.refine_intrinsics:
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         if len(window) >= slam_map.num_keyframes:  # nothing outside the window holds the gauge
             cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.local_iterations, refine_focal), cfg, slam_map.reconstruction).solve()
+            self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
         merged, completed, filtered = self._maintain(slam_map, set(window), min_tri_angle_deg)
         return BundleAdjustmentResult("local", len(window), len(points), str(summary.termination_type).split(".")[-1],
                                       merged, completed, filtered, time.perf_counter() - t0, None)
