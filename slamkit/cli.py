@@ -121,7 +121,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     def on_result(slam: Slam, r) -> None:
         bar.update(1)
-        bar.set_postfix_str(f"{r.status} kf={r.num_keyframes} pts={r.num_points}", refresh=False)
+        bar.set_postfix_str(f"{r.status} kf={r.num_keyframes} pts={r.num_points} · {slam.state.describe_speed()}",
+                            refresh=False)
         if args.verbose:
             tqdm.write(str(r))
 

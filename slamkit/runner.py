@@ -33,6 +33,7 @@ from .io.run import save_run
 from .io.run_dir import check_out_dir, out_dir_lock, remove_stale_temporaries, save_id
 from .pipeline import Slam, StepResult
 from .session import find_session
+from .state import describe_stages
 
 __all__ = ["RunOutcome", "run_to_folder", "summary_line"]
 
@@ -192,6 +193,8 @@ def summary_line(s: dict) -> str:
     line = (f"frames {s['frames']}/{s['frames_total']}, posed {s['frames_posed']} "
             f"({100 * s['fraction_posed']:.1f} %), keyframes {s['keyframes']}, points {s['points3D']}, "
             f"{s['fps']:.1f} frames/s")
+    if s.get("stage_ms_per_frame"):
+        line += f" ({describe_stages(s['stage_ms_per_frame'])})"
     skipped, unreadable = s.get("frames_skipped", 0), s.get("frames_unreadable", 0)
     if skipped or unreadable:
         first = (s.get("unreadable_frames") or [{}])[0]

@@ -370,4 +370,21 @@ class SlamState:
             "seconds_per_frame": self.wall_time / n if n else 0.0,
             "seconds_per_keyframe": self.wall_time / n_kf if n_kf else 0.0,
             "timings_s": dict(self.timings),
+            "stage_ms_per_frame": self.stage_ms_per_frame(),
         }
+
+    def stage_ms_per_frame(self) -> dict[str, float]:
+        """Milliseconds per frame of each stage so far, costliest first. ``read`` and ``features`` run on the
+        prefetch thread (``SlamConfig.prefetch``), beside the others; the rest are the main thread's."""
+        n = max(len(self.records), 1)
+        return {k: 1e3 * v / n for k, v in sorted(self.timings.items(), key=lambda kv: (-kv[1], kv[0]))}
+
+    def describe_speed(self, stages: int = 3) -> str:
+        """``track 32, ba 24, features 18 ms/frame``: where the time goes so far (the costliest stages)."""
+        return describe_stages(self.stage_ms_per_frame(), stages)
+
+
+def describe_stages(ms_per_frame: dict[str, float], stages: int = 3) -> str:
+    """The ``stages`` costliest stages of ``{stage: ms per frame}``: ``track 32, ba 24, features 18 ms/frame``."""
+    top = sorted(ms_per_frame.items(), key=lambda kv: (-kv[1], kv[0]))[:stages]
+    return ", ".join(f"{k} {v:.0f}" for k, v in top) + " ms/frame" if top else ""

