@@ -72,3 +72,28 @@ def test_empty_and_single_rows():
     assert hamming.knn2(hamming.words(d[:0]), hamming.words(d))[0].shape == (0,)
     with pytest.raises(ValueError, match="binary descriptors"):
         hamming.words(d[0])
+
+
+@pytest.mark.parametrize("radius", [3.0, 10.0, 0.5])
+@pytest.mark.parametrize("cfg", [MatchingConfig(), MatchingConfig(ratio=0.6, max_hamming=50)])
+def test_compiled_guided_match_equals_the_numpy_steps(radius, cfg):
+    from slamkit.features.base import _guided_match_arrays, guided_match
+
+    rng = np.random.default_rng(int(radius * 10) + int(cfg.ratio * 100))
+    n, m = 1200, 900
+    keypoints = rng.uniform(0, 640, (n, 2))
+    keypoints[:200] = np.round(keypoints[:200])  # keypoints on the same pixel and exactly on the radius
+    kp_desc = rng.integers(0, 256, (n, 32), np.uint8)
+    src = rng.integers(0, n, m)
+    proj = keypoints[src] + rng.normal(0, radius / 2, (m, 2))
+    proj[:100] = np.round(proj[:100])
+    point_desc = kp_desc[src].copy()
+    flips = rng.integers(0, 256, point_desc.shape, np.uint8) & rng.integers(0, 256, point_desc.shape, np.uint8) \
+        & rng.integers(0, 256, point_desc.shape, np.uint8)
+    point_desc ^= flips  # near, not equal, descriptors: ratio test and distance limit both decide
+    point_desc[::7] = point_desc[0]  # duplicated descriptors: ties for one keypoint
+    for taken in (None, rng.random(n) < 0.3):
+        got = guided_match(proj, point_desc, keypoints, kp_desc, True, radius, cfg, taken)
+        ref = _guided_match_arrays(proj, point_desc, keypoints, kp_desc, True, radius, cfg, taken)
+        assert got.dtype == np.int64 and np.array_equal(got, ref)
+        assert len(ref) > (20 if radius >= 3 else 0)

@@ -198,6 +198,24 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     M, N = len(proj), len(keypoints)
     if M == 0 or N == 0:
         return np.empty((0, 2), np.int64)
+    if binary:  # compiled: the same pairs as the steps below, one pass per point
+        cell, ox, oy, width, height, order, start, count = _keypoint_grid(keypoints, radius)
+        px, py = proj[:, 0], proj[:, 1]
+        pcx, pcy = (np.floor(px / cell) - ox).astype(np.int64), (np.floor(py / cell) - oy).astype(np.int64)
+        taken = np.zeros(N, bool) if kp_taken is None else np.asarray(kp_taken, bool)
+        return hamming.guided_match(np.ascontiguousarray(px), np.ascontiguousarray(py), pcx, pcy,
+                                    hamming.words(point_desc), np.ascontiguousarray(keypoints[:, 0]),
+                                    np.ascontiguousarray(keypoints[:, 1]), hamming.words(kp_desc),
+                                    (order, start, count, width, height), radius, cfg.max_hamming, cfg.ratio,
+                                    taken)
+    return _guided_match_arrays(proj, point_desc, keypoints, kp_desc, binary, radius, cfg, kp_taken)
+
+
+def _guided_match_arrays(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray, kp_desc: np.ndarray,
+                         binary: bool, radius: float, cfg: MatchingConfig, kp_taken: np.ndarray | None
+                         ) -> np.ndarray:
+    """:func:`guided_match` in numpy, step by step over every candidate pair (float descriptors; the
+    reference the compiled binary path is tested against)."""
     pt, kp = _candidates_within(proj, keypoints, radius, kp_taken)
     if len(pt) == 0:
         return np.empty((0, 2), np.int64)
@@ -216,15 +234,12 @@ def guided_match(proj: np.ndarray, point_desc: np.ndarray, keypoints: np.ndarray
     return np.stack([pt[first], kp[first]], axis=1).astype(np.int64)
 
 
-def _candidates_within(proj: np.ndarray, keypoints: np.ndarray, radius: float,
-                       kp_taken: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """Every (map point, keypoint) pair with the keypoint within ``radius`` pixels of the projection
-    ``proj`` (M, 2) and not ``kp_taken``: ((K,) int64 map point indices, (K,) int64 keypoint indices)."""
-    # keypoints bucketed in square cells of side `radius`: a point's candidates lie in its 3x3 cells. Two
-    # empty cells around the keypoints: any projection with candidates falls inside the grid. (x and y are
-    # kept apart: gathering 1-D arrays is faster than gathering rows of an (N, 2) array.)
+def _keypoint_grid(keypoints: np.ndarray, radius: float) -> tuple:
+    """Keypoints bucketed in square cells of side ``radius``, with two empty cells around them: (cell side,
+    grid origin x and y in cells, width, height, keypoint indices by cell (by index within a cell), each
+    cell's start in that order, each cell's count)."""
     cell = max(float(radius), 1.0)
-    kx, ky, px, py = keypoints[:, 0], keypoints[:, 1], proj[:, 0], proj[:, 1]
+    kx, ky = keypoints[:, 0], keypoints[:, 1]
     ox, oy = np.floor(kx.min() / cell) - 2, np.floor(ky.min() / cell) - 2
     cx, cy = (np.floor(kx / cell) - ox).astype(np.int64), (np.floor(ky / cell) - oy).astype(np.int64)
     width, height = int(cx.max()) + 3, int(cy.max()) + 3
@@ -232,6 +247,18 @@ def _candidates_within(proj: np.ndarray, keypoints: np.ndarray, radius: float,
     order = np.argsort(key, kind="stable")
     count = np.bincount(key, minlength=width * height)
     start = np.cumsum(count) - count
+    return cell, ox, oy, width, height, order, start, count
+
+
+def _candidates_within(proj: np.ndarray, keypoints: np.ndarray, radius: float,
+                       kp_taken: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Every (map point, keypoint) pair with the keypoint within ``radius`` pixels of the projection
+    ``proj`` (M, 2) and not ``kp_taken``: ((K,) int64 map point indices, (K,) int64 keypoint indices)."""
+    # keypoints bucketed in square cells of side `radius`: a point's candidates lie in its 3x3 cells. Two
+    # empty cells around the keypoints: any projection with candidates falls inside the grid. (x and y are
+    # kept apart: gathering 1-D arrays is faster than gathering rows of an (N, 2) array.)
+    cell, ox, oy, width, height, order, start, count = _keypoint_grid(keypoints, radius)
+    kx, ky, px, py = keypoints[:, 0], keypoints[:, 1], proj[:, 0], proj[:, 1]
     pcx, pcy = (np.floor(px / cell) - ox).astype(np.int64), (np.floor(py / cell) - oy).astype(np.int64)
     inside = (pcx >= 1) & (pcx <= width - 2) & (pcy >= 1) & (pcy <= height - 2)
     pts = np.flatnonzero(inside)

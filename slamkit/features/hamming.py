@@ -92,3 +92,63 @@ def knn2(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
 def nearest(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """For each row of ``a``: the index of its nearest row of ``b`` (-1 when ``b`` is empty)."""
     return knn2(a, b)[0]
+
+
+@njit(cache=True, nogil=True)
+def _guided_kernel(px, py, pcx, pcy, pw, kx, ky, kw, order, start, count, width, height, radius, max_dist,
+                   ratio, taken, out_pt, out_kp):
+    """See :func:`guided_match`; writes the pairs into out_pt / out_kp (sorted by keypoint), returns their
+    number."""
+    n_kp = kx.shape[0]
+    best_pt = np.full(n_kp, -1, np.int64)
+    best_d = np.full(n_kp, _FAR, np.int64)
+    r2 = radius * radius
+    ratio32 = np.float32(ratio)
+    for i in range(px.shape[0]):
+        cx, cy = pcx[i], pcy[i]
+        if cx < 1 or cx > width - 2 or cy < 1 or cy > height - 2:
+            continue
+        d0, d1, j0 = _FAR, _FAR, -1
+        for dy in range(-1, 2):  # the 3x3 cells, row by row; in a cell, keypoints by index (the numpy order)
+            for dx in range(-1, 2):
+                key = (cy + dy) * width + cx + dx
+                for s in range(start[key], start[key] + count[key]):
+                    j = order[s]
+                    ex, ey = kx[j] - px[i], ky[j] - py[i]
+                    if ex * ex + ey * ey > r2 or taken[j]:
+                        continue
+                    d = _distance(pw, i, kw, j)
+                    if d > max_dist:
+                        continue
+                    if d < d1:
+                        if d < d0:
+                            d1, d0, j0 = d0, d, j
+                        else:
+                            d1 = d
+        if j0 < 0:
+            continue
+        if d1 < _FAR and not np.float32(d0) < ratio32 * np.float32(d1):  # Lowe's ratio (float32, as numpy's)
+            continue
+        if d0 < best_d[j0]:  # one map point per keypoint: the closest descriptor, ties to the first point
+            best_d[j0], best_pt[j0] = d0, i
+    k = 0
+    for j in range(n_kp):
+        if best_pt[j] >= 0:
+            out_pt[k], out_kp[k] = best_pt[j], j
+            k += 1
+    return k
+
+
+def guided_match(px, py, pcx, pcy, point_words, kx, ky, kp_words, grid, radius: float, max_dist: float,
+                 ratio: float, taken: np.ndarray) -> np.ndarray:
+    """Guided matching of binary descriptors (``slamkit.features.guided_match``'s rule, compiled): for each
+    projected point (px, py) in grid cell (pcx, pcy), the keypoints within ``radius`` in its 3x3 cells
+    (``grid`` = (order, start, count, width, height) of the keypoints' cells), nearest descriptor within
+    ``max_dist`` bits, Lowe's ratio against the second nearest, then one point per keypoint. (K, 2) int64
+    pairs (point index, keypoint index) sorted by keypoint."""
+    order, start, count, width, height = grid
+    n = min(len(px), len(kx))
+    out_pt, out_kp = np.empty(n, np.int64), np.empty(n, np.int64)
+    k = _guided_kernel(px, py, pcx, pcy, point_words, kx, ky, kp_words, order, start, count, width, height,
+                       float(radius), int(max_dist), float(ratio), taken, out_pt, out_kp)
+    return np.stack([out_pt[:k], out_kp[:k]], axis=1)
