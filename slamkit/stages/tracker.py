@@ -10,7 +10,7 @@ TrackWithMotionModel / TrackReferenceKeyFrame / TrackLocalMap, on pycolmap's est
    When that pose keeps fewer than ``recheck_inlier_ratio`` of the points tracked in the previous frame, the
    frame is matched against the whole local map by descriptor too, and the pose with more inliers wins.
 3. Track the local map: project again with the estimated pose, match within ``refine_radius_px`` and
-   refine the pose on all inliers (motion-only bundle adjustment, :func:`~slamkit.pose_refinement.refine_pose`);
+   refine the pose on all inliers (``pycolmap.refine_absolute_pose``, motion-only bundle adjustment);
    repeated (``local_map_rounds``) while the refinement moves the projections.
 """
 
@@ -25,16 +25,14 @@ import pycolmap
 from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, guided_match, match_descriptors
 from ..local_map import POINT_DESCRIPTORS, LocalMap
-from ..map import matrix_from_rigid
-from ..pose_refinement import refine_pose
+from ..map import matrix_from_rigid, rigid_from_matrix
 from ..results import TrackedMatches
 from ..state import FrameStatus
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..state import Segment, SlamState
 
-REFINE_ITERATIONS = 20
-"""Levenberg-Marquardt iterations of a pose refinement (motion-only BA, :func:`slamkit.pose_refinement.refine_pose`)."""
+
 
 
 @dataclass(frozen=True)
@@ -173,7 +171,7 @@ class Tracker:
         ref = pycolmap.AbsolutePoseRefinementOptions()
         ref.refine_focal_length = False
         ref.refine_extra_params = False
-        ref.max_num_iterations = REFINE_ITERATIONS
+        ref.max_num_iterations = 20
         self._refinement = ref
 
     def step(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera,
@@ -243,7 +241,7 @@ class Tracker:
         if len(pairs) < c.min_inliers:
             return None, "motion", len(pairs)
         xy, xyz = frame.keypoints[pairs[:, 1]], local_map.xyz[idx[pairs[:, 0]]]
-        initial = self._from_prediction(predicted, xy, xyz, K)
+        initial = self._from_prediction(predicted, xy, xyz, camera, K)
         if initial is not None:
             return initial, "motion", len(pairs)
         return self._ransac(xy, xyz, camera), "motion+ransac", len(pairs)
@@ -277,8 +275,9 @@ class Tracker:
             inl = self._inliers(pose, xy, xyz, K)
             moved = 0.0
             if inl.sum() >= c.min_inliers:
-                refined = refine_pose(pose, xy, xyz, K, inl, REFINE_ITERATIONS)
-                if refined is not None:
+                ref = pycolmap.refine_absolute_pose(rigid_from_matrix(pose), xy, xyz, inl, camera, self._refinement)
+                if ref is not None:
+                    refined = matrix_from_rigid(ref["cam_from_world"])
                     moved = float(np.median(np.linalg.norm(_project(refined, xyz[inl], K)[0]
                                                            - _project(pose, xyz[inl], K)[0], axis=1)))
                     pose = refined
@@ -290,13 +289,15 @@ class Tracker:
                 break
         return best
 
-    def _from_prediction(self, predicted: np.ndarray, xy: np.ndarray, xyz: np.ndarray, K: np.ndarray
-                         ) -> np.ndarray | None:
+    def _from_prediction(self, predicted: np.ndarray, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera,
+                         K: np.ndarray) -> np.ndarray | None:
         """ORB-SLAM's TrackWithMotionModel without RANSAC: refine the predicted pose on all the matches
         (robust loss), accepted when most matches are then inliers; else None (RANSAC decides)."""
-        pose = refine_pose(predicted, xy, xyz, K, None, REFINE_ITERATIONS)
-        if pose is None:
+        ref = pycolmap.refine_absolute_pose(rigid_from_matrix(predicted), xy, xyz, np.ones(len(xy), bool), camera,
+                                            self._refinement)
+        if ref is None:
             return None
+        pose = matrix_from_rigid(ref["cam_from_world"])
         n_inl = int(self._inliers(pose, xy, xyz, K).sum())
         if n_inl < max(self.config.min_inliers, self.config.prediction_min_inlier_ratio * len(xy)):
             return None
