@@ -97,3 +97,18 @@ def test_compiled_guided_match_equals_the_numpy_steps(radius, cfg):
         ref = _guided_match_arrays(proj, point_desc, keypoints, kp_desc, True, radius, cfg, taken)
         assert got.dtype == np.int64 and np.array_equal(got, ref)
         assert len(ref) > (20 if radius >= 3 else 0)
+
+
+def test_compiled_vocabulary_descent_equals_the_numpy_levels():
+    from slamkit.place_recognition.vocabulary import Vocabulary, VocabularyConfig
+
+    rng = np.random.default_rng(5)
+    images = [_orb(s, 400) for s in range(6)]
+    voc = Vocabulary.train(images, VocabularyConfig(branching=4, depth=3, iterations=3))
+    queries = np.concatenate([_orb(11, 600), images[0][:50],
+                              np.zeros((3, 32), np.uint8)])  # all-zero rows: many equal distances
+    words = voc.transform(queries)
+    assert words.dtype == np.int32 and (words >= 0).all()
+    assert np.array_equal(words, voc._transform_arrays(queries))
+    assert len(np.unique(words)) > 10
+

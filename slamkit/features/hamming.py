@@ -4,7 +4,8 @@ Brute-force nearest neighbours (``knn2``: the best and second-best of each query
 with OpenCV ``BFMatcher(NORM_HAMMING)``'s results exactly, ties included (the lowest train index wins a
 tie, as in OpenCV's k-nearest insertion), at about a sixth of its single-thread time: 64 bits at a time
 with the CPU's popcount instruction. Each call runs on the calling thread and releases the GIL (``nogil``),
-so the result never depends on threads. Kernels compile on first use and are cached on disk by numba (in
+so the result never depends on threads. (Splitting a large brute force over two threads was measured and
+dropped: on two cores, beside the prefetch thread's extraction, mapping got slower.) Kernels compile on first use and are cached on disk by numba (in
 ``__pycache__`` beside this file, or numba's per-user cache when that is read-only).
 """
 
@@ -82,10 +83,10 @@ def knn2(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     int64, int64."""
     n = len(a)
     best, d_best, d_second = np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n, np.int64)
-    if n and len(b):
-        _knn2_kernel(a, b, best, d_best, d_second)
-    else:
+    if not (n and len(b)):
         best[:], d_best[:], d_second[:] = -1, _FAR, _FAR
+    else:
+        _knn2_kernel(a, b, best, d_best, d_second)
     return best, d_best, d_second
 
 
@@ -152,3 +153,32 @@ def guided_match(px, py, pcx, pcy, point_words, kx, ky, kp_words, grid, radius: 
     k = _guided_kernel(px, py, pcx, pcy, point_words, kx, ky, kp_words, order, start, count, width, height,
                        float(radius), int(max_dist), float(ratio), taken, out_pt, out_kp)
     return np.stack([out_pt[:k], out_kp[:k]], axis=1)
+
+
+@njit(cache=True, nogil=True)
+def _descend_kernel(dw, cw, children, node_word, out):
+    for i in range(dw.shape[0]):
+        node = 0
+        while True:
+            best, d_best = -1, _FAR
+            for c in range(children.shape[1]):
+                child = children[node, c]
+                if child < 0:
+                    continue
+                d = _distance(dw, i, cw, child)
+                if d < d_best:  # the first nearest child, as numpy's argmin
+                    best, d_best = child, d
+            if best < 0:
+                break
+            node = best
+        out[i] = node_word[node]
+
+
+def descend(descriptor_words: np.ndarray, center_words: np.ndarray, children: np.ndarray,
+            node_word: np.ndarray) -> np.ndarray:
+    """Word of each descriptor in a vocabulary tree of binary centres (``slamkit.place_recognition``): from
+    the root, the nearest child (Hamming; the first of equals) until a leaf. (N,) of ``node_word``'s dtype."""
+    out = np.empty(len(descriptor_words), node_word.dtype)
+    if len(out):
+        _descend_kernel(descriptor_words, center_words, children, node_word, out)
+    return out

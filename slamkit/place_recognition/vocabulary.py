@@ -25,6 +25,7 @@ from typing import Iterable, Literal
 import numpy as np
 
 from ..errors import ConfigError
+from ..features import hamming
 
 DescriptorKind = Literal["binary", "float"]
 DESCRIPTOR_KINDS: tuple[str, ...] = ("binary", "float")
@@ -134,6 +135,7 @@ class Vocabulary:
         self.children = np.asarray(children, np.int32)
         self.node_word = np.asarray(node_word, np.int32)
         self.idf = np.asarray(idf, np.float32)
+        self._center_words = hamming.words(self.centers) if kind == "binary" else None  # for the compiled descent
         if self.children.shape[0] != len(self.centers) or len(self.node_word) != len(self.centers):
             raise ConfigError("vocabulary arrays disagree on the number of nodes")
         if len(self.idf) != int(self.node_word.max()) + 1:
@@ -188,6 +190,12 @@ class Vocabulary:
     def transform(self, descriptors: np.ndarray) -> np.ndarray:
         """Word ids (N,) int32 of descriptors (N, D): descend the tree to the nearest child at each level."""
         d = self._check(descriptors)
+        if self.kind == "binary" and len(d):  # compiled descent: the same words as the steps below
+            return hamming.descend(hamming.words(d), self._center_words, self.children, self.node_word)
+        return self._transform_arrays(d)
+
+    def _transform_arrays(self, d: np.ndarray) -> np.ndarray:
+        """:meth:`transform` level by level in numpy (float descriptors; the reference of the compiled path)."""
         node = np.zeros(len(d), np.int64)
         while len(d):
             ch = self.children[node]
