@@ -3,11 +3,12 @@
 Brute-force nearest neighbours (``knn2``: the best and second-best of each query row, ``nearest``: the best)
 with OpenCV ``BFMatcher(NORM_HAMMING)``'s results exactly, ties included (the lowest train index wins a
 tie, as in OpenCV's k-nearest insertion), at about a sixth of its single-thread time: 64 bits at a time
-with the CPU's popcount instruction. Each call runs on the calling thread and releases the GIL (``nogil``),
-so the result never depends on threads. (Splitting a large brute force over two threads was measured and
-dropped: on two cores, beside the prefetch thread's extraction, mapping got slower.) Kernels compile on first use and are cached on disk by numba (in
-``__pycache__`` beside this file, or numba's per-user cache when that is read-only).
-"""
+with the CPU's popcount instruction; guided matching by projection (``guided_match``) and the descent of a
+vocabulary tree (``descend``) likewise return what the numpy code does. Each call runs on the calling
+thread and releases the GIL (``nogil``), so the result never depends on threads. (Splitting a large brute
+force over two threads was measured and dropped: on two cores, beside the prefetch thread's extraction,
+mapping got slower.) Kernels compile on first use and are cached on disk by numba (in ``__pycache__``
+beside this file, or numba's per-user cache when that is read-only)."""
 
 from __future__ import annotations
 
