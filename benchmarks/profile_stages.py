@@ -19,7 +19,10 @@ to exit; the child splits it into rows:
   it: it stays under ``TOLERANCE`` of the wall (``tests/test_profile_stages.py``).
 
 The stages on the prefetch thread (``read``, ``features``) are listed below the table with their own
-totals: they overlap the main thread, so they are not part of the sum.
+totals: they overlap the main thread, so they are not part of the sum. The child's CPU time (user + system,
+all its threads, from ``getrusage``) is the last row, with the cores it kept busy on average; CPU time
+divided by the machine's cores is the shortest wall time any overlap of the same work could reach (the
+bound printed below the table, as throughput against the first tree).
 
 ``--trees A B ...`` profiles other checkouts of slamkit with the same script, side by side and back to back
 (``--repeat`` rounds, interleaved), so a before/after comparison runs on one machine under the same load::
@@ -44,6 +47,7 @@ import ast  # noqa: E402
 import csv  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
+import resource  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import tempfile  # noqa: E402
@@ -62,6 +66,9 @@ SEQUENCES = {
 
 PREFETCH_STAGES = ("read", "features")
 """Stages of ``StepResult.timings`` measured on the prefetch thread (not part of the main thread's sum)."""
+
+CORES = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+"""Cores of this machine: with every one busy all the time, a run takes at least its CPU time / CORES."""
 
 TOLERANCE = 0.05
 """The ``unaccounted`` row stays below this fraction of the wall time."""
@@ -136,9 +143,11 @@ def profile_tree(tree: Path, source: str, frames: int, overrides: dict) -> dict:
         os.pathsep)}
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--source", source, "--frames", str(frames),
            "--overrides", json.dumps(overrides)]
-    t = time.perf_counter()
+    t, used = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tree)
     wall = time.perf_counter() - t
+    now = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (now.ru_utime - used.ru_utime) + (now.ru_stime - used.ru_stime)
     line = next((ln for ln in proc.stdout.splitlines() if ln.startswith("PROFILE ")), None)
     if proc.returncode != 0 or line is None:
         raise RuntimeError(f"profiling {source} with {tree} failed (exit {proc.returncode}):\n{proc.stderr[-2000:]}")
@@ -147,6 +156,7 @@ def profile_tree(tree: Path, source: str, frames: int, overrides: dict) -> dict:
     startup = wall - out["measured_s"] + rows.pop("imports")
     out["rows"] = {"startup and exit": startup, **rows}
     out["wall_s"] = wall
+    out["cpu_s"] = cpu
     return out
 
 
@@ -170,6 +180,9 @@ def _table(name: str, labels: list[str], runs: dict[str, list[dict]]) -> str:
     lines.append("| **whole process** | " + " | ".join(
         f"**{1e3 * walls[lb] / frames:.1f}** ({walls[lb]:.1f} s, {frames / walls[lb]:.1f} fps) | 100 %" for lb in labels)
         + " |")
+    cpus = {lb: sum(r["cpu_s"] for r in runs[lb]) / len(runs[lb]) for lb in labels}
+    lines.append("| CPU time, all threads | " + " | ".join(
+        f"{1e3 * cpus[lb] / frames:.1f} ({cpus[lb]:.1f} s) | {cpus[lb] / walls[lb]:.2f} cores" for lb in labels) + " |")
     for lb in labels:
         pre = {k: sum(r["prefetch"].get(k, 0.0) for r in runs[lb]) / len(runs[lb]) for k in PREFETCH_STAGES}
         rounds = ", ".join(f"{r['wall_s']:.1f}" for r in runs[lb])
@@ -179,6 +192,10 @@ def _table(name: str, labels: list[str], runs: dict[str, list[dict]]) -> str:
     if len(labels) > 1:
         base = walls[labels[0]]
         lines.append("\nthroughput vs " + labels[0] + ": " + ", ".join(f"{lb} {base / walls[lb]:.2f}x" for lb in labels[1:]))
+    lines.append(f"\nbound with all {CORES} cores busy all the time (CPU time / {CORES})"
+                 + (f", as throughput vs {labels[0]}" if len(labels) > 1 else "") + ": " + ", ".join(
+                     f"{lb} {cpus[lb] / CORES:.1f} s" + (f" = {walls[labels[0]] / (cpus[lb] / CORES):.2f}x"
+                                                         if len(labels) > 1 else "") for lb in labels))
     return "\n".join(lines)
 
 
@@ -226,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
                 for stage, v in r["rows"].items():
                     out_rows.append({"sequence": name, "tree": lb, "round": k, "stage": stage, "seconds": v,
                                      "ms_per_frame": 1e3 * v / r["frames"], "share": v / r["wall_s"],
-                                     "wall_s": r["wall_s"], "frames": r["frames"]})
+                                     "wall_s": r["wall_s"], "cpu_s": r["cpu_s"], "frames": r["frames"]})
         print(_table(name, list(labels.values()), runs), flush=True)
     if out_rows:
         args.csv.parent.mkdir(parents=True, exist_ok=True)

@@ -35,6 +35,12 @@ def test_rows_add_up_to_the_wall_time_with_little_unaccounted(profile):
     assert out["prefetch"]["features"] > 0
 
 
+def test_cpu_time_is_the_childs_own_and_bounded_by_its_cores(profile):
+    out, _ = profile
+    # the child computes for most of its life (imports, the run): at least half a core, at most all cores
+    assert 0.5 * out["wall_s"] < out["cpu_s"] <= profile_stages.CORES * out["wall_s"] * 1.05
+
+
 def test_rows_of_the_steps_and_finish_match_the_pipelines_own_clock(profile):
     out, _ = profile
     rows = out["rows"]
@@ -48,6 +54,9 @@ def test_table_names_every_stage_and_the_throughput_ratio(profile):
     for stage in out["rows"]:
         assert f"| {stage} |" in table
     assert "throughput vs a: b 1.00x" in table
+    assert f"| CPU time, all threads | {1e3 * out['cpu_s'] / out['frames']:.1f} ({out['cpu_s']:.1f} s) |" in table
+    bound = out["cpu_s"] / profile_stages.CORES
+    assert f"b {bound:.1f} s = {out['wall_s'] / bound:.2f}x" in table
     assert f"{out['frames'] / out['wall_s']:.1f} fps" in table
 
 
