@@ -121,6 +121,20 @@ class Intrinsics:
                 f"{where}: image is {w}x{h} but the intrinsics are for {self.width}x{self.height}"
             )
 
+    def distort_points(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) pixels of the ideal pinhole camera -> (N, 2) float64 distorted pixels (OpenCV's model: the
+        inverse of :meth:`undistort_points`)."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        if not self.has_distortion or len(xy) == 0:
+            return xy.copy()
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = (xy[:, 0] - self.cx) / self.fx, (xy[:, 1] - self.cy) / self.fy
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.column_stack([self.fx * xd + self.cx, self.fy * yd + self.cy])
+
     def undistort_points(self, xy: np.ndarray) -> np.ndarray:
         """(N, 2) distorted pixels -> (N, 2) float64 pixels of the ideal pinhole camera."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)

@@ -31,6 +31,8 @@ city block, a 250 m loop: :mod:`slamkit.sources.block`). Parameters of every mot
     scale=K      image size factor of the camera (default 1; intrinsics scaled accordingly)
     wide=1       KITTI's camera, 1226x370 with fx = fy = 707 px (default 0: 640x480, fx = fy = 500 px)
     focal=F      focal length in pixels (fx = fy = F) instead of the camera's own (self-calibration tests)
+    k1=K         radial distortion of the images (OpenCV's k1, default 0): each frame is rendered pinhole
+                 over the distorted image's field of view and resampled (self-calibration tests)
 
 plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
 ``jitter``, ``weave``, ``sway``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion
@@ -124,8 +126,9 @@ class SyntheticSource(FrameSource):
         fps = _check_positive("fps", fps)
         if not (math.isfinite(noise) and noise >= 0):
             raise ConfigError(f"noise must be >= 0 grey levels (got {noise})")
-        if intrinsics.has_distortion:
-            raise ConfigError("SyntheticSource: the renderer is pinhole only; intrinsics.dist must be zero")
+        if any(intrinsics.dist[1:]) or not -0.5 <= intrinsics.dist[0] <= 0.5:
+            raise ConfigError("SyntheticSource: only one radial coefficient, k1 in [-0.5, 0.5], is rendered "
+                              f"(got dist={tuple(intrinsics.dist)})")
         keep = select(len(poses), frame_skip, max_frames)
         self.name = name
         self.scene = scene
@@ -138,18 +141,22 @@ class SyntheticSource(FrameSource):
         self.timestamps = keep / fps
         self.gt_poses = poses[keep].copy()
         self._noise_field: np.ndarray | None = None
+        self._distortion = _distortion_maps(intrinsics) if intrinsics.has_distortion else None
 
     def rendering(self, i: int) -> Rendering:
-        """Noise-free :class:`~slamkit.sources.scene.Rendering` (image, exact depth, quad ids) of frame i."""
-        return self.scene.render(self.gt_poses[i], self.camera)
+        """Noise-free :class:`~slamkit.sources.scene.Rendering` (image, exact depth, quad ids) of frame i, by
+        the pinhole part of the camera (before distortion)."""
+        return self.scene.render(self.gt_poses[i], self.camera.pinhole)
 
     def depth(self, i: int) -> np.ndarray:
-        """(H, W) float64 exact z-depth in metres of the pixel centres of delivered frame ``i``."""
-        return self.scene.depth(self.gt_poses[i], self.camera)
+        """(H, W) float64 exact z-depth in metres of the pixel centres of delivered frame ``i`` (pinhole part)."""
+        return self.scene.depth(self.gt_poses[i], self.camera.pinhole)
 
     def points(self, i: int, pixels: np.ndarray) -> np.ndarray:
-        """(N, 3) exact world points seen at (N, 2) pixel coordinates of delivered frame ``i``."""
-        return self.scene.points(self.gt_poses[i], self.camera, pixels)
+        """(N, 3) exact world points seen at (N, 2) pixel coordinates of delivered frame ``i`` (of its images,
+        distortion included)."""
+        pixels = _undistort_radial(self.camera, pixels) if self.camera.has_distortion else pixels
+        return self.scene.points(self.gt_poses[i], self.camera.pinhole, pixels)
 
     def flow(self, i: int, j: int | None = None, step: int = 20) -> np.ndarray:
         """(M,) exact image motion in pixels from delivered frame ``i`` to ``j`` (default ``i + 1``): the
@@ -162,12 +169,19 @@ class SyntheticSource(FrameSource):
         pixels = np.stack([u.ravel(), v.ravel()], axis=1)
         pts = self.points(i, pixels)
         ok = np.isfinite(pts).all(axis=1)
-        uv, z = project(self.gt_poses[j], self.camera, pts[ok])
+        uv, z = project(self.gt_poses[j], self.camera.pinhole, pts[ok])
+        if self.camera.has_distortion:
+            uv = self.camera.distort_points(uv)
         return np.linalg.norm(uv[z > 0] - pixels[ok][z > 0], axis=1)
 
     def image(self, i: int) -> np.ndarray:
         """(H, W, 3) uint8 BGR image of delivered frame ``i`` (with the source's noise)."""
-        img = self.scene.render(self.gt_poses[i], self.camera).image
+        if self._distortion is None:
+            img = self.scene.render(self.gt_poses[i], self.camera).image
+        else:  # the pinhole render over the distorted image's view, resampled at each pixel's undistorted place
+            canvas, map_x, map_y = self._distortion
+            img = cv2.remap(self.scene.render(self.gt_poses[i], canvas).image, map_x, map_y, cv2.INTER_LINEAR,
+                            borderMode=cv2.BORDER_REPLICATE)
         if self.noise > 0:
             # Gaussian noise, rounded to grey levels: a window of a noise field drawn once from the seed, at
             # an offset drawn from (seed, frame id) -- as random as fresh noise at a fraction of the cost
@@ -184,9 +198,40 @@ class SyntheticSource(FrameSource):
         return self.image(i), None
 
 
+def _undistort_radial(camera: Intrinsics, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of a camera with radial distortion ``k1`` -> (N, 2) pixels of its pinhole part, exact to
+    rounding (the fixed point of ``x = x_d / (1 + k1 r^2)``; OpenCV's ``undistortPoints`` stops after 5
+    steps, 1e-3 px off in the corners at k1 = -0.1)."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    xd, yd = (xy[:, 0] - camera.cx) / camera.fx, (xy[:, 1] - camera.cy) / camera.fy
+    x, y = xd.copy(), yd.copy()
+    for _ in range(200):
+        radial = 1 + camera.dist[0] * (x * x + y * y)
+        x, y = xd / radial, yd / radial
+    return np.column_stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy])
+
+
+def _distortion_maps(camera: Intrinsics) -> tuple[Intrinsics, np.ndarray, np.ndarray]:
+    """(pinhole canvas, map_x, map_y) to render a radially distorted ``camera``: the canvas is the pinhole
+    part of the camera grown to cover every pixel's undistorted place (barrel distortion sees wider), and
+    ``cv2.remap(render, map_x, map_y)`` samples it at those places."""
+    w, h = camera.width, camera.height
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    und = _undistort_radial(camera, np.column_stack([u.ravel(), v.ravel()]))
+    x0, y0 = np.floor(und.min(axis=0)) - 2
+    x1, y1 = np.ceil(und.max(axis=0)) + 2
+    x0, y0 = min(x0, 0.0), min(y0, 0.0)
+    canvas = Intrinsics(int(max(x1 + 1, w) - x0), int(max(y1 + 1, h) - y0), camera.fx, camera.fy,
+                        camera.cx - x0, camera.cy - y0)
+    map_x = (und[:, 0] - x0).reshape(h, w).astype(np.float32)
+    map_y = (und[:, 1] - y0).reshape(h, w).astype(np.float32)
+    return canvas, map_x, map_y
+
+
 def synthetic_source(motion: str = "default", *, frames: int | None = None, seed: int = 0,
                      fps: float = DEFAULT_FPS, noise: float = 0.0, scale: float = 1.0, wide: int = 0,
-                     focal: float | None = None, frame_skip: int = 1, max_frames: int | None = None, **motion_kw) -> SyntheticSource:
+                     focal: float | None = None, k1: float = 0.0, frame_skip: int = 1, max_frames: int | None = None,
+                     **motion_kw) -> SyntheticSource:
     """A :class:`SyntheticSource` for a named motion of :data:`MOTIONS` (in the default room) or of
     :data:`SCENE_MOTIONS` (in its own scene).
 
@@ -217,13 +262,17 @@ def synthetic_source(motion: str = "default", *, frames: int | None = None, seed
             camera = replace(camera, fx=float(focal), fy=float(focal))
         except CalibrationError as e:
             raise ConfigError(f"focal={focal:g}: {e}") from None
+    if k1:
+        if not -0.5 <= float(k1) <= 0.5:
+            raise ConfigError(f"k1 must be in [-0.5, 0.5] (got {k1})")
+        camera = replace(camera, dist=(float(k1), 0.0, 0.0, 0.0, 0.0))
     poses = fn(**kw)
     label = motion if not motion_kw and frames is None else f"{motion}({len(poses)})"
     return SyntheticSource(make_scene(), poses, camera, fps=fps, seed=seed, noise=noise, frame_skip=frame_skip,
                            max_frames=max_frames, name=f"synthetic/{label}")
 
 
-_COMMON = ("frames", "seed", "fps", "noise", "scale", "wide", "focal")
+_COMMON = ("frames", "seed", "fps", "noise", "scale", "wide", "focal", "k1")
 
 
 def _motion(name: str) -> tuple[Callable[..., np.ndarray], Callable[[], Scene]]:
