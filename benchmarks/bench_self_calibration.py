@@ -1,16 +1,19 @@
 """Self-calibration (issue 30): every sequence run twice, with its calibration and with ``camera="auto"``
-(the focal length estimated from the frames and the map, principal point at the image centre).
+(the focal length estimated from the frames and the map, principal point at the image centre; the final
+BA adds one radial coefficient k1).
 
 Cases (:data:`CASES`): KITTI odometry 07 (160 frames, true focal 707.09 px, principal point 11 px left of
 the centre), 7-Scenes redkitchen (600 frames; the dataset's nominal 585 px), the driving clip (268 frames;
 ``--camera 721`` as its known calibration, no ground truth), and rendered sequences with exact intrinsics:
-the hand-held room (150 frames) at focal lengths 0.5x, 1x and 2x the image width (320, 640, 1280 px), a drive round a
-city block (forward motion with four turns, 700 px) and pure forward motion (the degenerate case: the
-estimate must say it is weak). Seeds 0 .. N-1 go to ``SlamConfig.seed`` and to the synthetic spec's seed.
+the hand-held room (150 frames) at focal lengths 0.5x, 1x and 2x the image width (320, 640, 1280 px) and
+with barrel distortion (500 px, k1 = -0.1), a drive round a city block (forward motion with four turns,
+700 px) and pure forward motion (the degenerate case: the estimate must say it is weak). Seeds 0 .. N-1 go
+to ``SlamConfig.seed`` and to the synthetic spec's seed.
 
 Columns per run: posed (%) of all frames; ATE (m, Sim(3), largest segment); focal (px, the final camera of
-the run) and its error against the truth (%); first (px) the estimate from the first frames, its bootstrap
-uncertainty (%) and whether it was weak; wall seconds. Per case and mode: mean ± standard error over seeds.
+the run) and its error against the truth (%); k1 (the run's radial coefficient); first (px) the estimate
+from the first frames, its bootstrap uncertainty (%) and whether it was weak; wall seconds. Per case and
+mode: mean ± standard error over seeds.
 
 Output: a Markdown table on stdout and ``benchmarks/results/bench_self_calibration.csv`` (``--csv``).
 
@@ -51,6 +54,8 @@ class Case:
     """The true focal length, px."""
     known: str = ""
     """``SlamConfig.camera`` of the calibrated run ("" = the source's own)."""
+    k1: float = 0.0
+    """The true radial distortion coefficient (OpenCV's k1)."""
     kw: dict = field(default_factory=dict)
 
     def source_spec(self, seed: int) -> str:
@@ -65,13 +70,14 @@ CASES = [
     *(Case(f"syn-room-f{f}", f"synthetic:handheld?frames=150&focal={f}" + _SYN, float(f)) for f in (320, 640, 1280)),
     Case("syn-block-f700", "synthetic:block-loop?frames=300&focal=700" + _SYN, 700.0),
     Case("syn-forward", "synthetic:forward?frames=100" + _SYN, 500.0),
+    Case("syn-room-k1", "synthetic:handheld?frames=150&k1=-0.1" + _SYN, 500.0, k1=-0.1),
 ]
 MODES = ("known", "auto", "auto-nofinal")
 """known: the case's calibration; auto: ``camera="auto"``; auto-nofinal: the same without the final global
 BA's refinement of the focal length (``self_calibration.refine_final=false``)."""
-COLUMNS = ["row", "case", "mode", "seed", "status", "frames", "posed_pct", "ate_m", "focal", "focal_err_pct",
+COLUMNS = ["row", "case", "mode", "seed", "status", "frames", "posed_pct", "ate_m", "focal", "focal_err_pct", "k1",
            "first_focal", "first_uncertainty_pct", "first_weak", "wall_s", "error"]
-MEAN_KEYS = ["posed_pct", "ate_m", "focal", "focal_err_pct", "first_focal", "first_uncertainty_pct", "wall_s"]
+MEAN_KEYS = ["posed_pct", "ate_m", "focal", "focal_err_pct", "k1", "first_focal", "first_uncertainty_pct", "wall_s"]
 
 
 def _absent(case: Case) -> str | None:
@@ -102,7 +108,8 @@ def run_one(job: tuple[Case, str, int, dict]) -> dict:
         s, traj, gt = slam.summary(), slam.trajectory(), source.ground_truth()
         focal = float(slam.camera.fx)
         row |= {"status": "ok", "frames": s["frames"], "posed_pct": 100.0 * s["frames_posed"] / s["frames"],
-                "focal": focal, "focal_err_pct": 100.0 * (focal / case.focal - 1), "wall_s": time.perf_counter() - t0}
+                "focal": focal, "focal_err_pct": 100.0 * (focal / case.focal - 1), "k1": float(slam.camera.dist[0]),
+                "wall_s": time.perf_counter() - t0}
         first = slam.calibrator.initial if slam.calibrator is not None else None
         if first is not None:
             row |= {"first_focal": first.focal if math.isfinite(first.focal) else None,
@@ -141,11 +148,12 @@ def _cell(row: dict, key: str, fmt: str) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["| case | mode | seeds | posed % | ATE (m) | focal (px) | focal error % | first frames (px) | "
-             "± % | weak |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| case | mode | seeds | posed % | ATE (m) | focal (px) | focal error % | k1 | first frames (px) | "
+             "± % | weak |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['case']} | {r['mode']} | {r['seed']} | {_cell(r, 'posed_pct', '.1f')} | "
                      f"{_cell(r, 'ate_m', '.4f')} | {_cell(r, 'focal', '.1f')} | {_cell(r, 'focal_err_pct', '.2f')} | "
+                     f"{_cell(r, 'k1', '.4f')} | "
                      f"{_cell(r, 'first_focal', '.1f')} | {_cell(r, 'first_uncertainty_pct', '.1f')} | "
                      f"{'-' if r['first_weak'] is None else r['first_weak']} |")
     return "\n".join(lines)
@@ -173,7 +181,7 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(r)
             print(f"[{time.strftime('%H:%M:%S')}] {r['case']} {r['mode']} seed {r['seed']}: {r['status']} "
                   + " ".join(f"{k}={r[k]:.4g}" if isinstance(r.get(k), float) else f"{k}={r.get(k)}"
-                             for k in ("posed_pct", "ate_m", "focal", "focal_err_pct", "first_focal", "first_weak")
+                             for k in ("posed_pct", "ate_m", "focal", "focal_err_pct", "k1", "first_focal", "first_weak")
                              if k in r) + (f" {r['error']}" if r["error"] else ""), flush=True)
     finally:
         pool.close()  # workers exit on their own (terminating them mid-teardown makes pycolmap print a trace)

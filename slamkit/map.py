@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import heapq
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,14 +58,15 @@ def matrix_from_rigid(r: pycolmap.Rigid3d) -> np.ndarray:
 
 def bundle_adjustment_options(iterations: int, loss: str = "soft_l1", refine_intrinsics: bool = False,
                               function_tolerance: float = 1e-6, num_threads: int = 1,
-                              refine_principal_point: bool = False) -> pycolmap.BundleAdjustmentOptions:
+                              refine_principal_point: bool = False,
+                              refine_extra_params: bool = False) -> pycolmap.BundleAdjustmentOptions:
     """pycolmap BA options: robust loss (scale 1 px), intrinsics fixed unless asked, quiet. Shared by the
     bundle adjuster and the initializer's two-view BA."""
     o = pycolmap.BundleAdjustmentOptions()
     o.print_summary = False
     o.refine_focal_length = refine_intrinsics
     o.refine_principal_point = refine_principal_point
-    o.refine_extra_params = False
+    o.refine_extra_params = refine_extra_params
     o.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, BA_LOSSES[loss])
     o.ceres.loss_function_scale = 1.0
     o.ceres.solver_options.max_num_iterations = iterations
@@ -77,6 +79,22 @@ def pycolmap_camera(camera: Intrinsics) -> pycolmap.Camera:
     """PINHOLE camera of the undistorted keypoints."""
     return pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
                            params=[camera.fx, camera.fy, camera.cx, camera.cy], camera_id=CAMERA_ID)
+
+
+MIN_RADIAL_SHIFT_PX = 0.1
+"""A radial coefficient estimated by self-calibration is kept when it moves the farthest pixel from the
+principal point by at least this much (pixels)."""
+
+
+def undistort_radial(camera: pycolmap.Camera, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of a distorted pycolmap ``camera`` -> (N, 2) pixels of its pinhole part (same focal
+    length and principal point, no distortion), with COLMAP's own inverse of the distortion."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    if len(xy) == 0:
+        return xy.copy()
+    rays = np.asarray(camera.cam_from_img(xy), np.float64).reshape(len(xy), -1)[:, :2]
+    f, cx, cy = camera.focal_length_x, camera.principal_point_x, camera.principal_point_y
+    return np.column_stack([f * rays[:, 0] + cx, camera.focal_length_y * rays[:, 1] + cy])
 
 
 class SlamMap:
@@ -129,6 +147,50 @@ class SlamMap:
         cam.params = [f, f, cx, cy]
         self.camera = Intrinsics(self.camera.width, self.camera.height, f, f, cx, cy)
         return f
+
+    def use_radial_camera(self) -> None:
+        """The map's camera becomes COLMAP's SIMPLE_RADIAL (``f, cx, cy, k1``) with ``k1 = 0``: the same
+        projections, and a bundle adjustment with ``refine_extra_params`` can then estimate one radial
+        distortion coefficient of the keypoints (self-calibration's final BA). :meth:`undistort_observations`
+        makes it PINHOLE again."""
+        cam = self.reconstruction.camera(CAMERA_ID)
+        fx, fy, cx, cy = (float(v) for v in cam.params)
+        self.reconstruction.cameras[CAMERA_ID] = pycolmap.Camera(
+            model="SIMPLE_RADIAL", width=cam.width, height=cam.height, params=[0.5 * (fx + fy), cx, cy, 0.0],
+            camera_id=CAMERA_ID)
+
+    def drop_radial(self) -> None:
+        """The camera becomes PINHOLE ``(f, f, cx, cy)`` again, its radial coefficient dropped (observations
+        left as they are): after a bundle adjustment whose ``k1`` is not believed."""
+        cam = self.reconstruction.camera(CAMERA_ID)
+        f, cx, cy = (float(v) for v in cam.params[:3])
+        self.reconstruction.cameras[CAMERA_ID] = pycolmap.Camera(
+            model="PINHOLE", width=cam.width, height=cam.height, params=[f, f, cx, cy], camera_id=CAMERA_ID)
+
+    def undistort_observations(self) -> float:
+        """After :meth:`use_radial_camera` and a bundle adjustment: every keyframe's 2D points are undistorted
+        with the estimated ``k1`` (COLMAP's own inverse, ``Camera.cam_from_img``) and the camera is PINHOLE
+        ``(f, f, cx, cy)`` again, so each point projects where it did and the map keeps ideal-pinhole keypoints
+        like every other map. Returns ``k1``: 0 when the camera was not SIMPLE_RADIAL, or when ``k1`` moves no
+        pixel by :data:`MIN_RADIAL_SHIFT_PX` (a pinhole camera's BA finds a k1 of about 1e-5: the points are
+        then left as they are, and the camera stays an exact pinhole for export)."""
+        cam = self.reconstruction.camera(CAMERA_ID)
+        if cam.model.name != "SIMPLE_RADIAL":
+            return 0.0
+        f, cx, cy, k1 = (float(v) for v in cam.params)
+        r = math.hypot(max(cx, cam.width - cx), max(cy, cam.height - cy)) / f  # the farthest pixel, normalized
+        if abs(k1) * r ** 3 * f < MIN_RADIAL_SHIFT_PX:
+            k1 = 0.0
+        for image in self.reconstruction.images.values() if k1 else ():
+            points = image.points2D
+            if len(points):
+                xy = undistort_radial(cam, np.array([p.xy for p in points]))
+                for point, q in zip(points, xy):
+                    point.xy = q
+        self.reconstruction.cameras[CAMERA_ID] = pycolmap.Camera(
+            model="PINHOLE", width=cam.width, height=cam.height, params=[f, f, cx, cy], camera_id=CAMERA_ID)
+        self.camera = Intrinsics(self.camera.width, self.camera.height, f, f, cx, cy)
+        return k1
 
     def add_image(self, frame_index: int, timestamp: float, keypoints: np.ndarray, features: Features,
                   colors: np.ndarray, thumbnail: np.ndarray | None = None) -> int:

@@ -10,6 +10,7 @@ Everything the run has done lives in :attr:`Slam.state`; the attributes below it
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import replace
@@ -26,7 +27,7 @@ from .frames import FrameLoader, thumbnail
 from .interrupt import deferred_interrupt
 from .io.run import save_run
 from .local_map import LocalMap
-from .map import SlamMap
+from .map import SlamMap, undistort_radial
 from .merging import MergeResult, merge_segments
 from .results import StepResult, TrackedMatches
 from .session import load_session, save_session, unfinished_snapshot
@@ -308,16 +309,35 @@ class Slam:
         self.loader.camera = self.camera  # no distortion is known: the keypoints are the same
         self.initializer.set_camera(self.camera)
 
+    def _use_radial(self, seg: Segment) -> float | None:
+        """After the final BA estimated ``k1`` in ``seg``'s SIMPLE_RADIAL camera: the map is PINHOLE again with
+        undistorted keypoints, and so are the frames still to be tracked again (``initial_frames``); returns
+        ``k1`` (0 when negligible). None (camera PINHOLE again, nothing else changed) when ``k1`` is beyond
+        ``self_calibration.max_radial``."""
+        radial = copy.copy(seg.slam_map.pycolmap_camera)  # the map's own is replaced by its PINHOLE part below
+        if abs(float(radial.params[3])) > self.config.self_calibration.max_radial:
+            seg.slam_map.drop_radial()
+            return None
+        k1 = seg.slam_map.undistort_observations()
+        if k1:
+            seg.initial_frames = [replace(f, keypoints=undistort_radial(radial, f.keypoints))
+                                  for f in seg.initial_frames]
+        return k1
+
     def _refining(self, slam_map: SlamMap, final: bool = False) -> bool:
         """Whether this BA refines the focal length (self-calibration's second phase)."""
         return self.calibrator is not None and self.calibrator.refining(slam_map.num_keyframes, final)
 
-    def _refined(self, slam_map: SlamMap, final: bool = False) -> None:
-        """After a refining BA: one focal length for both axes, used from now on, and recorded."""
+    def _refined(self, slam_map: SlamMap, final: bool = False, k1: float = 0.0) -> None:
+        """After a refining BA (its map's camera PINHOLE again): one focal length for both axes, used from now
+        on, and recorded with the radial coefficient ``k1`` the final BA estimated, which the run's camera
+        carries (``camera.txt``, export, ``--camera RUN_DIR``; no frame is read after the final BA)."""
         fx, fy, cx, cy = (float(v) for v in slam_map.pycolmap_camera.params)
         self._use_focal(0.5 * (fx + fy), cx, cy)  # kept within the sane range
         slam_map.set_focal(self.camera.fx)
-        self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final)
+        if k1:
+            self.camera = replace(self.camera, dist=(k1, 0.0, 0.0, 0.0, 0.0))
+        self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final, k1)
 
     # ----------------------------------------------------------------- initialization
     def _initialize(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
@@ -556,11 +576,19 @@ class Slam:
         for seg in st.segments:
             if self.config.ba.final_global and seg.slam_map.num_keyframes >= 3:
                 refine = seg is main and self._refining(seg.slam_map, final=True)
-                bres = self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=refine)
-                if refine:
-                    self._refined(seg.slam_map, final=True)
+                radial = refine and self.config.self_calibration.refine_radial
+                if radial:
+                    seg.slam_map.use_radial_camera()
+                bres = self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=refine, refine_radial=radial)
                 if bres.normalization is not None:
                     st.apply_normalization(seg, float(bres.normalization.scale))
+                k1 = self._use_radial(seg) if radial else 0.0
+                if k1 is None:  # an implausible k1: a pinhole BA instead
+                    k1, bres = 0.0, self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=True)
+                    if bres.normalization is not None:
+                        st.apply_normalization(seg, float(bres.normalization.scale))
+                if refine:
+                    self._refined(seg.slam_map, final=True, k1=k1)
         st.timings["ba"] = st.timings.get("ba", 0.0) + time.perf_counter() - t
         t2 = time.perf_counter()
         for seg in st.segments:

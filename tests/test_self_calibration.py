@@ -21,6 +21,7 @@ from slamkit.exporter import export
 from slamkit.pipeline import Slam
 from slamkit.sources import open_source
 from slamkit.sources.calibration import read_camera_txt
+from slamkit.sources.render import project
 from slamkit.stages.self_calibration import (SelfCalibrationConfig, SelfCalibrator, estimate_focal,
                                              essential_cost, focal_grid)
 
@@ -142,6 +143,72 @@ def test_a_resumed_run_keeps_the_estimate_and_equals_an_uninterrupted_one(estima
     assert resumed.camera == slam.camera
     a, b = slam.trajectory(), resumed.trajectory()
     assert np.array_equal(a.timestamps, b.timestamps) and np.array_equal(a.poses, b.poses)
+
+
+TRUE_K1 = -0.1
+"""Barrel distortion of a wide phone or action camera: the corners of the 640x480 image move 16 px inward."""
+
+
+@pytest.fixture(scope="module")
+def distorted(tmp_path_factory):
+    """A whole run on a rendered camera with radial distortion, camera estimated, saved."""
+    slam = Slam(f"synthetic:handheld?frames=120&k1={TRUE_K1:g}&noise=1", CONFIG)
+    slam.run()
+    return slam, slam.save(tmp_path_factory.mktemp("radial") / "run")
+
+
+def test_the_rendered_distortion_is_exact():
+    src = open_source(f"synthetic:handheld?frames=2&k1={TRUE_K1:g}")
+    pinhole = open_source("synthetic:handheld?frames=2")
+    cam = src.camera
+    assert cam.dist == (TRUE_K1, 0, 0, 0, 0) and pinhole.camera == cam.pinhole
+    # a scene point seen at distorted pixel p lies on the ray of its undistorted place
+    pixels = np.array([[5.0, 7.0], [600.0, 420.0], [320.0, 240.0], [100.0, 400.0]])
+    pts = src.points(0, pixels)
+    uv, z = project(src.gt_poses[0], cam.pinhole, pts)
+    assert np.abs(cam.distort_points(uv) - pixels).max() < 1e-9
+    # the image centre is the same picture; a corner is not
+    a, b = src[0].gray.astype(float), pinhole[0].gray.astype(float)
+    assert np.abs(a[200:280, 280:360] - b[200:280, 280:360]).mean() < 3
+    assert np.abs(a[:60, :60] - b[:60, :60]).mean() > 10
+    with pytest.raises(ConfigError, match="k1"):
+        open_source("synthetic:handheld?frames=2&k1=0.9")
+
+
+def test_the_radial_distortion_of_a_rendered_camera_is_recovered(distorted, tmp_path):
+    slam, out = distorted
+    cam = slam.camera
+    assert abs(cam.fx / 500.0 - 1) < 0.01, slam.describe_camera()
+    assert cam.dist[0] == pytest.approx(TRUE_K1, rel=0.1) and cam.dist[1:] == (0, 0, 0, 0)
+    assert f"k1={cam.dist[0]:.4f}" in slam.describe_camera()
+    # the map is PINHOLE on undistorted keypoints again: its points project where they were observed
+    rec = slam.main_segment.slam_map.reconstruction
+    assert rec.camera(next(iter(rec.cameras))).model.name == "PINHOLE"
+    assert rec.compute_mean_reprojection_error() < 1.0
+    assert len(slam.trajectory()) == len(slam)
+    assert ate(slam.source.ground_truth(), slam.trajectory()).rmse < 0.02
+    # saved with k1, reused with it, exported with it (OpenCV's model, images as they are)
+    saved = read_camera_txt(out / "camera.txt", 640, 480)
+    assert saved.dist == pytest.approx(cam.dist, rel=1e-9) and saved.fx == pytest.approx(cam.fx, rel=1e-12)
+    assert json.loads((out / "summary.json").read_text())["camera"]["dist"][0] == pytest.approx(cam.dist[0])
+    assert json.loads((out / "summary.json").read_text())["camera"]["self_calibration"]["k1"] == pytest.approx(
+        cam.dist[0])
+    other = Slam(f"synthetic:handheld?frames=20&seed=3&k1={TRUE_K1:g}", SlamConfig().with_overrides(camera=str(out)))
+    assert other.calibrator is None and other.camera == saved
+    res = export(out, tmp_path / "export", frames="keyframes")
+    assert res.camera_model == "OPENCV"
+    exported = pycolmap.Reconstruction(str(tmp_path / "export" / "sparse" / "0"))
+    assert exported.camera(next(iter(exported.cameras))).params[4] == pytest.approx(cam.dist[0])
+    assert exported.compute_mean_reprojection_error() < 1.0
+
+
+def test_without_refine_radial_the_final_camera_stays_pinhole():
+    slam = Slam(f"synthetic:handheld?frames=60&k1={TRUE_K1:g}",
+                CONFIG.with_overrides(**{"self_calibration.refine_radial": False,
+                                         "self_calibration.window_frames": 40}))
+    slam.run()
+    assert not slam.camera.has_distortion and slam.calibrator.k1 == 0
+    assert slam.calibrator.frozen  # the final BA did refine the focal length
 
 
 # ----------------------------------------------------------------------------------------------- when it applies

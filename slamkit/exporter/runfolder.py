@@ -23,7 +23,7 @@ from ..config import SlamConfig, is_camera_path
 from ..errors import FormatError, SlamkitError
 from ..io.saved import check_run
 from ..io.trajectory import read_tum
-from ..sources.calibration import camera_from_path
+from ..sources.calibration import CAMERA_TXT, camera_from_path
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin")
 """Files of the COLMAP binary model a run folder must hold in ``sparse/``."""
@@ -109,12 +109,19 @@ def _session(run_dir: Path) -> dict | None:
         raise RunFolderError(f"{path}: cannot be read ({e})") from None
 
 
-def _camera(meta: dict | None, model: pycolmap.Reconstruction, source_camera: Intrinsics | None) -> Intrinsics:
-    """The images' intrinsics: the run's ``--camera``, else the source's, with the model camera's pinhole part."""
+def _camera(meta: dict | None, model: pycolmap.Reconstruction, source_camera: Intrinsics | None,
+            run_dir: Path | None = None, estimated: bool = False) -> Intrinsics:
+    """The images' intrinsics: the run's ``--camera``, else the source's, with the model camera's pinhole part;
+    ``estimated`` (self-calibration): the run's own ``camera.txt``, which holds the radial coefficient."""
     cam = model.camera(next(iter(model.cameras)))
     text = ((meta or {}).get("config") or {}).get("camera") or ""
-    if text == "auto":  # estimated: the model holds it, and no distortion was known
+    if estimated or text == "auto":  # the model holds the pinhole part, camera.txt the radial coefficient
         base = Intrinsics(cam.width, cam.height, *cam.params[:4])
+        if run_dir is not None and (run_dir / CAMERA_TXT).is_file():
+            try:
+                base = camera_from_path(str(run_dir), cam.width, cam.height)
+            except SlamkitError:
+                pass
     elif is_camera_path(text):  # another run's camera.txt: its distortion, if it is still there
         try:
             base = camera_from_path(text, cam.width, cam.height)
@@ -169,13 +176,15 @@ def load_run(run_dir: str | Path, source_camera: Intrinsics | None = None) -> Sa
     if model.num_reg_images() == 0:
         raise RunFolderError(f"{run_dir / 'sparse'}: the model has no registered keyframe")
     meta = _session(run_dir)
-    main = None
+    main, estimated = None, False
     summary = run_dir / "summary.json"
     if summary.is_file():
-        main = json.loads(summary.read_text()).get("main_segment")
+        saved = json.loads(summary.read_text())
+        main = saved.get("main_segment")
+        estimated = (saved.get("camera") or {}).get("origin") == "estimated"
     frames = _posed_frames(run_dir, model, main)
     config = SlamConfig.from_dict(meta["config"]) if meta is not None and "config" in meta else SlamConfig()
     spec = meta.get("source", {}).get("spec") if meta is not None else None
     recorded = meta.get("source", {}).get("frames") if meta is not None else None
-    return SavedRun(run_dir, model, frames, _camera(meta, model, source_camera), spec, config,
+    return SavedRun(run_dir, model, frames, _camera(meta, model, source_camera, run_dir, estimated), spec, config,
                     int(recorded) if isinstance(recorded, int) else None)

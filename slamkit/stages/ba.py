@@ -126,11 +126,13 @@ class BundleAdjuster:
             return min(angle, self.config.min_tri_angle_deg)
         return self.config.min_tri_angle_deg
 
-    def _options(self, iterations: int, refine_focal: bool = False) -> pycolmap.BundleAdjustmentOptions:
+    def _options(self, iterations: int, refine_focal: bool = False,
+                 refine_radial: bool = False) -> pycolmap.BundleAdjustmentOptions:
         c = self.config
         return bundle_adjustment_options(iterations, c.loss, c.refine_intrinsics or refine_focal,
                                          c.function_tolerance, c.num_threads,
-                                         refine_principal_point=refine_focal and self.refine_principal_point)
+                                         refine_principal_point=refine_focal and self.refine_principal_point,
+                                         refine_extra_params=refine_focal and refine_radial)
 
     def global_due(self, slam_map: SlamMap) -> bool:
         n = slam_map.num_keyframes
@@ -179,7 +181,11 @@ class BundleAdjuster:
                                       merged, completed, filtered, time.perf_counter() - t0, None)
 
     def adjust_global(self, slam_map: SlamMap, normalize: bool | None = None,
-                      min_tri_angle_deg: float | None = None, refine_focal: bool = False) -> BundleAdjustmentResult:
+                      min_tri_angle_deg: float | None = None, refine_focal: bool = False,
+                      refine_radial: bool = False) -> BundleAdjustmentResult:
+        """Every keyframe, two poses fixed (the gauge). ``refine_focal``: the focal length too (and the principal
+        point when the adjuster was made with ``refine_principal_point``); with ``refine_radial`` the radial
+        coefficient of a SIMPLE_RADIAL map camera (:meth:`SlamMap.use_radial_camera`) as well."""
         t0 = time.perf_counter()
         rec = slam_map.reconstruction
         cfg = pycolmap.BundleAdjustmentConfig()
@@ -189,7 +195,7 @@ class BundleAdjuster:
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.global_iterations, refine_focal), cfg, rec).solve()
+            self._options(self.config.global_iterations, refine_focal, refine_radial), cfg, rec).solve()
         merged, completed, filtered = self._maintain(slam_map, None, min_tri_angle_deg)
         self._keyframes_at_last_global = slam_map.num_keyframes
         sim = None
