@@ -14,7 +14,8 @@ found). Two phases:
    (bootstrap) is the uncertainty. Pairs explained as well by a homography (rotation about the centre, or a
    plane) say nothing about ``f`` through F and are left out.
 2. **While mapping** (:meth:`SelfCalibrator.refining`, :meth:`SelfCalibrator.refined`): the final global
-   bundle adjustment refines the focal length with the whole map (COLMAP's ``refine_focal_length``); after
+   bundle adjustment refines the focal length with the whole map (COLMAP's ``refine_focal_length``), and one
+   radial distortion coefficient with it (``refine_radial``: a SIMPLE_RADIAL camera for that BA); after
    a weak first estimate, every keyframe's BA does from ``min_refine_keyframes`` to ``refine_keyframes``
    keyframes. An estimate from the first frames that is not weak stays fixed while tracking: refined at
    every keyframe, the focal length of a forward-moving map wanders by percents and tracking is lost.
