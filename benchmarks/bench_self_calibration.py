@@ -12,7 +12,8 @@ to ``SlamConfig.seed`` and to the synthetic spec's seed.
 
 Columns per run: posed (%) of all frames; ATE (m, Sim(3), largest segment); focal (px, the final camera of
 the run) and its error against the truth (%); k1 (the run's radial coefficient); first (px) the estimate
-from the first frames, its bootstrap uncertainty (%) and whether it was weak; wall seconds. Per case and
+from the first frames, its bootstrap uncertainty (%) and whether it was weak; whether the run's estimate is
+reported weak at the end; wall seconds. Per case and
 mode: mean ± standard error over seeds.
 
 Output: a Markdown table on stdout and ``benchmarks/results/bench_self_calibration.csv`` (``--csv``).
@@ -76,7 +77,7 @@ MODES = ("known", "auto", "auto-nofinal")
 """known: the case's calibration; auto: ``camera="auto"``; auto-nofinal: the same without the final global
 BA's refinement of the focal length (``self_calibration.refine_final=false``)."""
 COLUMNS = ["row", "case", "mode", "seed", "status", "frames", "posed_pct", "ate_m", "focal", "focal_err_pct", "k1",
-           "first_focal", "first_uncertainty_pct", "first_weak", "wall_s", "error"]
+           "first_focal", "first_uncertainty_pct", "first_weak", "weak_at_end", "wall_s", "error"]
 MEAN_KEYS = ["posed_pct", "ate_m", "focal", "focal_err_pct", "k1", "first_focal", "first_uncertainty_pct", "wall_s"]
 
 
@@ -112,7 +113,8 @@ def run_one(job: tuple[Case, str, int, dict]) -> dict:
                 "wall_s": time.perf_counter() - t0}
         first = slam.calibrator.initial if slam.calibrator is not None else None
         if first is not None:
-            row |= {"first_focal": first.focal if math.isfinite(first.focal) else None,
+            row |= {"weak_at_end": bool(slam.calibrator.weak),
+                    "first_focal": first.focal if math.isfinite(first.focal) else None,
                     "first_uncertainty_pct": 100 * first.uncertainty if math.isfinite(first.uncertainty) else None,
                     "first_weak": bool(first.weak)}
         if gt is not None and len(traj) >= 3:
@@ -136,6 +138,7 @@ def case_rows(runs: list[dict]) -> list[dict]:
             m, se = mean_se([r[k] for r in rs if r.get(k) is not None])
             row[k], row[k + "_se"] = m, se
         row["first_weak"] = sum(bool(r.get("first_weak")) for r in rs) if key[1] == "auto" else None
+        row["weak_at_end"] = sum(bool(r.get("weak_at_end")) for r in rs) if key[1] == "auto" else None
         out.append(row)
     return out
 
@@ -149,13 +152,14 @@ def _cell(row: dict, key: str, fmt: str) -> str:
 
 def markdown(rows: list[dict]) -> str:
     lines = ["| case | mode | seeds | posed % | ATE (m) | focal (px) | focal error % | k1 | first frames (px) | "
-             "± % | weak |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "± % | weak | weak at the end |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['case']} | {r['mode']} | {r['seed']} | {_cell(r, 'posed_pct', '.1f')} | "
                      f"{_cell(r, 'ate_m', '.4f')} | {_cell(r, 'focal', '.1f')} | {_cell(r, 'focal_err_pct', '.2f')} | "
                      f"{_cell(r, 'k1', '.4f')} | "
                      f"{_cell(r, 'first_focal', '.1f')} | {_cell(r, 'first_uncertainty_pct', '.1f')} | "
-                     f"{'-' if r['first_weak'] is None else r['first_weak']} |")
+                     f"{'-' if r['first_weak'] is None else r['first_weak']} | "
+                     f"{'-' if r['weak_at_end'] is None else r['weak_at_end']} |")
     return "\n".join(lines)
 
 
@@ -181,7 +185,8 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(r)
             print(f"[{time.strftime('%H:%M:%S')}] {r['case']} {r['mode']} seed {r['seed']}: {r['status']} "
                   + " ".join(f"{k}={r[k]:.4g}" if isinstance(r.get(k), float) else f"{k}={r.get(k)}"
-                             for k in ("posed_pct", "ate_m", "focal", "focal_err_pct", "k1", "first_focal", "first_weak")
+                             for k in ("posed_pct", "ate_m", "focal", "focal_err_pct", "k1", "first_focal", "first_weak",
+                                       "weak_at_end")
                              if k in r) + (f" {r['error']}" if r["error"] else ""), flush=True)
     finally:
         pool.close()  # workers exit on their own (terminating them mid-teardown makes pycolmap print a trace)

@@ -328,7 +328,8 @@ class Slam:
         """Whether this BA refines the focal length (self-calibration's second phase)."""
         return self.calibrator is not None and self.calibrator.refining(slam_map.num_keyframes, final)
 
-    def _refined(self, slam_map: SlamMap, final: bool = False, k1: float = 0.0) -> None:
+    def _refined(self, slam_map: SlamMap, final: bool = False, k1: float = 0.0,
+                 before: float | None = None) -> None:
         """After a refining BA (its map's camera PINHOLE again): one focal length for both axes, used from now
         on, and recorded with the radial coefficient ``k1`` the final BA estimated, which the run's camera
         carries (``camera.txt``, export, ``--camera RUN_DIR``; no frame is read after the final BA)."""
@@ -337,7 +338,7 @@ class Slam:
         slam_map.set_focal(self.camera.fx)
         if k1:
             self.camera = replace(self.camera, dist=(k1, 0.0, 0.0, 0.0, 0.0))
-        self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final, k1)
+        self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final, k1, before)
 
     # ----------------------------------------------------------------- initialization
     def _initialize(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:
@@ -577,6 +578,7 @@ class Slam:
             if self.config.ba.final_global and seg.slam_map.num_keyframes >= 3:
                 refine = seg is main and self._refining(seg.slam_map, final=True)
                 radial = refine and self.config.self_calibration.refine_radial
+                before = float(seg.slam_map.pycolmap_camera.params[0])  # the focal length the map was built with
                 if radial:
                     seg.slam_map.use_radial_camera()
                 bres = self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=refine, refine_radial=radial)
@@ -588,7 +590,7 @@ class Slam:
                     if bres.normalization is not None:
                         st.apply_normalization(seg, float(bres.normalization.scale))
                 if refine:
-                    self._refined(seg.slam_map, final=True, k1=k1)
+                    self._refined(seg.slam_map, final=True, k1=k1, before=before)
         st.timings["ba"] = st.timings.get("ba", 0.0) + time.perf_counter() - t
         t2 = time.perf_counter()
         for seg in st.segments:

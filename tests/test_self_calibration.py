@@ -202,6 +202,21 @@ def test_the_radial_distortion_of_a_rendered_camera_is_recovered(distorted, tmp_
     assert exported.compute_mean_reprojection_error() < 1.0
 
 
+def test_a_final_bundle_adjustment_that_moves_the_focal_far_is_reported_weak():
+    cal = SelfCalibrator(SelfCalibrationConfig(window_frames=40))
+    for g in _grays("synthetic:handheld?frames=40&focal=640", 40):
+        cal.step(g)
+    cal.estimate(guess=768.0)
+    assert not cal.weak and abs(cal.focal / 640 - 1) < 0.02
+    cal.refined(cal.focal * 1.1, 30, final=True, before=cal.focal)  # within max_final_change: believed
+    assert not cal.weak and not cal.unsettled
+    cal.refined(1.5 * cal.focal, 30, final=True, before=cal.focal)  # a map that does not settle it
+    assert cal.weak and "moved it from" in cal.unsettled and "weak: the final bundle adjustment" in cal.describe()
+    again = SelfCalibrator(SelfCalibrationConfig(window_frames=40))
+    again.restore(cal.state())  # sessions keep it
+    assert again.weak and again.unsettled == cal.unsettled and again.k1 == cal.k1
+
+
 def test_without_refine_radial_the_final_camera_stays_pinhole():
     slam = Slam(f"synthetic:handheld?frames=60&k1={TRUE_K1:g}",
                 CONFIG.with_overrides(**{"self_calibration.refine_radial": False,
