@@ -76,8 +76,8 @@ class SelfCalibrationConfig:
     """The final global BA (with ``refine_final``) also estimates one radial distortion coefficient ``k1``: the
     map's camera is COLMAP's SIMPLE_RADIAL for that BA, then PINHOLE again with every keyframe's keypoints
     undistorted; the run's camera (``camera.txt``) carries ``k1``. A pinhole BA absorbs what it does not
-    model into the focal length: on KITTI 07 (rectified images) it ends 3.6 % short of the true 707 px, with
-    ``k1`` within 1 % (benchmarks/HISTORY.md, "Self-calibration")."""
+    model into the focal length: on KITTI 07 (rectified images) it ends 3.7 % short of the true 707 px, with
+    ``k1`` 0.4 ± 0.5 % over (benchmarks/HISTORY.md, "Self-calibration")."""
     max_radial: float = 0.5
     """A final BA whose ``k1`` is larger than this (in magnitude) is not believed: the focal length is refined
     by a pinhole BA instead (a map that does not constrain the camera drifts to absurd pairs such as
