@@ -224,6 +224,7 @@ class ImageListSource(FrameSource):
     gt_poses: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        self.name = shown(self.name)  # printable whatever bytes the folder names hold
         self.paths = [Path(p) for p in self.paths]
         self.timestamps = np.asarray(self.timestamps, dtype=np.float64)
         self.frame_ids = np.asarray(self.frame_ids, dtype=np.int64)
