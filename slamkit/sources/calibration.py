@@ -3,9 +3,9 @@
 Format: one data line ``fx fy cx cy [k1 k2 p1 p2 [k3]]`` (pixels; OpenCV radial-tangential distortion),
 numbers separated by spaces or commas; ``#`` starts a comment; blank lines are ignored. It is the calibration
 of the images as stored (distortion included); a comment line ``# image size: WxH`` (runs write it) says
-which images: images of another size are then refused, naming both sizes. Precedence in every source: an explicit ``camera=``
-(``--camera``, ``SlamConfig.camera``) first, then ``camera.txt``, then the dataset's own calibration, then
-the documented guess.
+which images: images of another size are then refused, naming both sizes. Precedence in every source: an
+explicit ``camera=`` (``--camera``, ``SlamConfig.camera``) first, then ``camera.txt``, then the dataset's own
+calibration, then the documented guess.
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """A folder of images (any camera), plus the image-listing helpers every layout shares.
 
 Files are taken in time order when their names are numbers (``0.05.png 0.1.png 0.15.png``: timestamps as
-names, decimals included), else in *natural* order (``frame2`` before ``frame10``). Opening reads no pixel: the image size
-comes from the PNG/JPEG header of the first file (a full decode only for other formats).
+names, decimals included), else in *natural* order (``frame2`` before ``frame10``). Opening reads no pixel:
+the image size comes from the PNG/JPEG header of the first file (a full decode only for other formats).
 """
 
 from __future__ import annotations
