@@ -3,10 +3,11 @@
 Opening makes one pass over the video without converting frames (``grab``): it counts the frames that
 decode and records each one's presentation time from the container (``CAP_PROP_POS_MSEC``), so
 ``timestamps`` are the true times of a variable-frame-rate video, not frame number / mean fps. Frames are
-then decoded on access by a capture that only reads forward: a frame before the current position reopens the
-file and reads forward again (no seek: seeking in a transport stream or a damaged file lands on another
-frame), and every frame read is checked against the first pass's time for its number, so a frame is never
-replaced by another. The self-calibration pass and the run therefore see the same frames.
+then decoded on access, reading forward; every frame read is checked against the first pass's time for its
+number, so a frame is never replaced by another. A frame before the current position is taken from the last
+few decoded, else sought back only when the frame the seek delivers has that frame's time (seeking in a
+transport stream or a file with a damaged index lands on another frame), else the file is reopened and read
+forward again. The self-calibration pass and the run therefore see the same frames.
 
 A video cut short (a download or copy that stopped, the index of an mp4 at the front announcing more frames
 than the file holds) is read up to its first frame that does not decode; when the container announced more,
@@ -39,6 +40,9 @@ DEFAULT_FPS = 30.0
 TIME_TOLERANCE_S = 1e-4
 """Largest difference (seconds) between a frame's time when read and in the first pass for the same frame."""
 
+RECENT_FRAMES = 4
+"""Decoded frames kept (the last ones read): a frame asked for again soon is not decoded again."""
+
 
 class VideoSource(FrameSource):
     """Frames of a video file.
@@ -62,7 +66,7 @@ class VideoSource(FrameSource):
         self.path = require_path(path, "video file")
         select(0, frame_skip, max_frames)  # validate early
         fps = check_fps(fps) if fps is not None else None
-        self._cap, self._pos = None, 0
+        self._cap, self._pos, self._recent = None, 0, []
         cap = self._open()
         try:
             container_fps = cap.get(cv2.CAP_PROP_FPS)
@@ -85,6 +89,7 @@ class VideoSource(FrameSource):
         extra = np.arange(1, self.n_video_frames - self.n_decodable + 1) * step + times[-1]
         self.frame_times = np.concatenate([times, extra])
         increasing = bool(np.all(np.diff(times) > 0))
+        self._unique_times = increasing
         self.timestamps_from = "container" if fps is None and increasing else "fps"
         width, height = size
         self.name = f"video/{shown(self.path.stem)}"
@@ -153,7 +158,7 @@ class VideoSource(FrameSource):
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         state["_cap"] = None  # a capture cannot be pickled; reopened lazily
-        state["_pos"] = 0
+        state["_pos"], state["_recent"] = 0, []
         return state
 
     def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
@@ -162,7 +167,18 @@ class VideoSource(FrameSource):
             raise ImageReadError(self.path, f"frame {k} could not be decoded: the video ends after frame "
                                             f"{self.n_decodable - 1} although its container announces "
                                             f"{self.n_announced} frames (the file is cut short or damaged)")
-        if self._cap is None or k < self._pos:  # forward only: reopen and read from the start
+        for number, image in self._recent:
+            if number == k:
+                return image, self.path
+        image = self._seek(k) if self._cap is not None and k < self._pos else None
+        if image is None:
+            image = self._forward(k)
+        self._recent = [(k, image)] + [r for r in self._recent if r[0] != k][: RECENT_FRAMES - 1]
+        return image, self.path
+
+    def _forward(self, k: int) -> np.ndarray:
+        """Frame ``k`` read forward: from the open capture, or from a new one when ``k`` is behind it."""
+        if self._cap is None or k < self._pos:
             self.close()
             self._open()
         cap = self._cap
@@ -179,13 +195,33 @@ class VideoSource(FrameSource):
             raise ImageReadError(self.path, f"frame {k} could not be decoded on this reading, although it "
                                             "decoded when the video was opened")
         self._pos = k + 1
-        t = cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0 - self.time_origin
+        t = self._time(cap)
         if abs(t - self.frame_times[k]) > TIME_TOLERANCE_S:
             self.close()
             raise ImageReadError(self.path, f"frame {k}: the decoder delivered the frame of time {t:.4f} s where "
                                             f"the first pass found {self.frame_times[k]:.4f} s; refusing to "
                                             "use another frame in its place")
-        return image, self.path
+        return image
+
+    def _seek(self, k: int) -> np.ndarray | None:
+        """Frame ``k`` by seeking the open capture back, when the frame it delivers has frame ``k``'s time (the
+        times are unique); None otherwise (a transport stream, a damaged index: read forward instead)."""
+        if not self._unique_times:
+            return None
+        cap = self._cap
+        try:
+            ok = cap.set(cv2.CAP_PROP_POS_FRAMES, k)
+            ok, image = cap.read() if ok else (False, None)
+        except cv2.error:  # pragma: no cover - OpenCV raises only for exotic files
+            ok, image = False, None
+        if ok and image is not None and image.size and abs(self._time(cap) - self.frame_times[k]) <= TIME_TOLERANCE_S:
+            self._pos = k + 1
+            return image
+        self.close()
+        return None
+
+    def _time(self, cap) -> float:
+        return cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0 - self.time_origin
 
     __repr__ = FrameSource.__repr__
 
