@@ -106,6 +106,23 @@ def test_an_image_whose_name_is_not_utf8_is_read_and_a_bad_one_named(tmp_path):
     assert os.fsencode(err.value.path) == os.fsencode(src.paths[5])  # the real name is kept
 
 
+def test_an_image_file_is_read_by_python_with_its_size_bounded(tmp_path):
+    from slamkit.sources.base import MAX_IMAGE_BYTES, read_image
+
+    empty = tmp_path / "empty.png"
+    empty.write_bytes(b"")
+    with pytest.raises(ImageReadError, match=r"empty\.png: is empty \(0 bytes\)"):
+        read_image(empty)
+    huge = tmp_path / "huge.png"
+    with open(huge, "wb") as f:  # sparse: no disk space used
+        f.truncate(MAX_IMAGE_BYTES + 1)
+    with pytest.raises(ImageReadError, match=r"huge\.png: is 1\.0 GiB, larger than any image slamkit reads"):
+        read_image(huge)
+    os.mkfifo(tmp_path / "pipe.png")
+    with pytest.raises(ImageReadError, match=r"pipe\.png: is not a regular file"):
+        read_image(tmp_path / "pipe.png")
+
+
 def test_a_folder_and_a_video_whose_names_are_not_utf8(tmp_path, monkeypatch):
     folder = tmp_path / os.fsdecode(b"dir\xff")
     folder.mkdir()

@@ -152,6 +152,10 @@ def decoder_messages_named(path: Path) -> Iterator[None]:
                         os.write(2, out.encode("utf-8", "backslashreplace"))
 
 
+MAX_IMAGE_BYTES = 2**30
+"""Largest image file read (bytes): the file is read whole before it is decoded."""
+
+
 def read_image(path: Path) -> np.ndarray:
     """Decode an image file; :class:`ImageReadError` names the file when it fails.
 
@@ -160,8 +164,12 @@ def read_image(path: Path) -> np.ndarray:
     """
     path = Path(path)
     if not path.is_file():
-        raise ImageReadError(path, "file does not exist")
+        raise ImageReadError(path, "is not a regular file" if os.path.exists(path) else "file does not exist")
     try:
+        size = path.stat().st_size
+        if size > MAX_IMAGE_BYTES:
+            raise ImageReadError(path, f"is {size / 2**30:.1f} GiB, larger than any image slamkit reads "
+                                       f"({MAX_IMAGE_BYTES / 2**30:g} GiB)")
         data = np.fromfile(path, dtype=np.uint8)
     except (OSError, ValueError) as e:
         raise ImageReadError(path, f"cannot be read ({getattr(e, 'strerror', None) or e})") from None
