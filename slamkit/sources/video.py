@@ -40,6 +40,9 @@ DEFAULT_FPS = 30.0
 TIME_TOLERANCE_S = 1e-4
 """Largest difference (seconds) between a frame's time when read and in the first pass for the same frame."""
 
+MAX_ANNOUNCED = 10_000_000
+"""Largest frame count of a container taken as true when fewer frames decode (46 hours at 60 fps)."""
+
 RECENT_FRAMES = 4
 """Decoded frames kept (the last ones read): a frame asked for again soon is not decoded again."""
 
@@ -82,9 +85,11 @@ class VideoSource(FrameSource):
             float(container_fps) if math.isfinite(container_fps) and 0 < container_fps < 1000 else DEFAULT_FPS)
         step = 1.0 / self.fps
         self.n_video_frames = self.n_decodable
-        if self.n_announced > self.n_decodable and self.n_announced * step > times[-1] + 2.5 * step:
+        if (self.n_decodable < self.n_announced <= MAX_ANNOUNCED
+                and self.n_announced * step > times[-1] + 2.5 * step):
             # the container announced frames beyond the last that decodes (not an estimate of a VFR video's
-            # count: that covers its duration): the file is cut short or damaged there
+            # count: that covers its duration; not a damaged header's absurd count): the file is cut short or
+            # damaged there
             self.n_video_frames = self.n_announced
         extra = np.arange(1, self.n_video_frames - self.n_decodable + 1) * step + times[-1]
         self.frame_times = np.concatenate([times, extra])
