@@ -73,11 +73,21 @@ def ffmpeg(*args: str) -> None:
 
 
 def encoded(tmp_path: Path, name: str, *options: str, n: int = 60, fps: float = 30.0) -> Path:
-    """``n`` coded frames (an MJPG avi by OpenCV) re-encoded by FFmpeg to H.264 with ``options``."""
+    """``n`` coded frames (an MJPG avi by OpenCV) re-encoded by FFmpeg with ``options``: H.264 (MPEG-4 part 2
+    where FFmpeg is built without x264); ``-fps_mode`` is ``-vsync`` before FFmpeg 5.1."""
     avi = write_avi(tmp_path / "frames.avi", n=n, fps=fps)
     out = tmp_path / name
-    ffmpeg("-i", str(avi), *options, "-c:v", "libx264", "-pix_fmt", "yuv420p", "-g", "10", str(out))
-    return out
+    tries = [("libx264", options), ("mpeg4", options)]
+    if "-fps_mode" in options:
+        old = tuple("-vsync" if o == "-fps_mode" else o for o in options)
+        tries += [("libx264", old), ("mpeg4", old)]
+    for codec, opts in tries:
+        try:
+            ffmpeg("-i", str(avi), *opts, "-c:v", codec, "-pix_fmt", "yuv420p", "-g", "10", str(out))
+            return out
+        except subprocess.CalledProcessError as e:
+            error = e.stderr.decode(errors="replace")
+    pytest.fail(f"ffmpeg could not write {name}: {error}")
 
 
 def numbers(source, indices) -> list[int]:
