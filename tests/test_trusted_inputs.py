@@ -185,6 +185,10 @@ def test_a_video_is_read_forward_and_asked_again_gives_the_same_frames(tmp_path)
     assert np.allclose(src.timestamps, src.frame_ids / 25.0, atol=1e-6)
     src = open_video(tmp_path / "clip.avi", fps=10)  # an fps given: frame number / fps
     assert src.timestamps_from == "fps" and np.allclose(src.timestamps, np.arange(40) / 10)
+    src.close()
+    (tmp_path / "clip.avi").unlink()  # gone since it was opened: the frame is skipped with the reason
+    with pytest.raises(ImageReadError, match=r"clip\.avi: frame 2 cannot be read: .*does not exist"):
+        src[2]
 
 
 @needs_ffmpeg

@@ -25,7 +25,7 @@ import cv2
 import numpy as np
 
 from ..camera import Intrinsics
-from ..errors import ImageReadError, SourceError, shown
+from ..errors import ImageReadError, SourceError, missing_reason, shown
 from .base import FrameSource, plain_name, select
 from .calibration import find_camera_txt, read_camera_txt
 from .folder import check_fps, resolve_camera
@@ -109,6 +109,9 @@ class VideoSource(FrameSource):
 
     # -- capture handling ------------------------------------------------------------------------------
     def _open(self):
+        if not self.path.is_file():
+            reason = missing_reason(self.path) or "is not a file"
+            raise SourceError(f"video file {shown(self.path)} {reason} (any more)")
         with plain_name(self.path) as name:
             cap = cv2.VideoCapture(name)
         if not cap.isOpened():
@@ -185,7 +188,10 @@ class VideoSource(FrameSource):
         """Frame ``k`` read forward: from the open capture, or from a new one when ``k`` is behind it."""
         if self._cap is None or k < self._pos:
             self.close()
-            self._open()
+            try:
+                self._open()
+            except SourceError as e:  # moved or deleted since it was opened: this frame is skipped, named
+                raise ImageReadError(self.path, f"frame {k} cannot be read: {e}") from None
         cap = self._cap
         while self._pos < k:
             if not cap.grab():
