@@ -22,6 +22,7 @@ from slamkit.config import SlamConfig
 from slamkit.errors import CalibrationError, FormatError, ImageReadError
 from slamkit.pipeline import Slam
 from slamkit.sources import open_folder, open_kitti, open_source, open_video
+from slamkit.sources.base import MAX_IMAGE_BYTES, read_image
 from slamkit.sources.calibration import camera_from_path, read_camera_txt, write_camera_txt
 from slamkit.sources.euroc import read_euroc_groundtruth
 from slamkit.sources.groundtruth import read_tum_trajectory
@@ -103,7 +104,6 @@ def test_an_image_whose_name_is_not_utf8_is_read_and_a_bad_one_named(tmp_path):
     folder.mkdir()
     for k in range(6):
         name = (BAD if k == 5 else b"%04d" % k) + b".png"
-        assert cv2.imencode(".png", coded_frame(k))[0]
         (folder / os.fsdecode(name)).write_bytes(cv2.imencode(".png", coded_frame(k))[1].tobytes())
     src = open_folder(folder)
     assert numbers(src, range(6)) == list(range(6))  # decoded from memory: OpenCV never sees the name
@@ -117,8 +117,6 @@ def test_an_image_whose_name_is_not_utf8_is_read_and_a_bad_one_named(tmp_path):
 
 
 def test_an_image_file_is_read_by_python_with_its_size_bounded(tmp_path):
-    from slamkit.sources.base import MAX_IMAGE_BYTES, read_image
-
     empty = tmp_path / "empty.png"
     empty.write_bytes(b"")
     with pytest.raises(ImageReadError, match=r"empty\.png: is empty \(0 bytes\)"):
