@@ -19,6 +19,7 @@ skips them with that reason). The name of the file never reaches FFmpeg: it open
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 
 import cv2
@@ -69,7 +70,7 @@ class VideoSource(FrameSource):
         self.path = require_path(path, "video file")
         select(0, frame_skip, max_frames)  # validate early
         fps = check_fps(fps) if fps is not None else None
-        self._cap, self._pos, self._recent = None, 0, []
+        self._cap, self._pos, self._recent, self._lock = None, 0, [], threading.Lock()
         cap = self._open()
         try:
             container_fps = cap.get(cv2.CAP_PROP_FPS)
@@ -167,7 +168,11 @@ class VideoSource(FrameSource):
         state = self.__dict__.copy()
         state["_cap"] = None  # a capture cannot be pickled; reopened lazily
         state["_pos"], state["_recent"] = 0, []
+        del state["_lock"]
         return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, _lock=threading.Lock())
 
     def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
         k = int(self.frame_ids[i])
@@ -175,14 +180,15 @@ class VideoSource(FrameSource):
             raise ImageReadError(self.path, f"frame {k} could not be decoded: the video ends after frame "
                                             f"{self.n_decodable - 1} although its container announces "
                                             f"{self.n_announced} frames (the file is cut short or damaged)")
-        for number, image in self._recent:
-            if number == k:
-                return image, self.path
-        image = self._seek(k) if self._cap is not None and k < self._pos else None
-        if image is None:
-            image = self._forward(k)
-        self._recent = [(k, image)] + [r for r in self._recent if r[0] != k][: RECENT_FRAMES - 1]
-        return image, self.path
+        with self._lock:  # one capture: a viewer's read and the prefetch thread's take turns
+            for number, image in self._recent:
+                if number == k:
+                    return image, self.path
+            image = self._seek(k) if self._cap is not None and k < self._pos else None
+            if image is None:
+                image = self._forward(k)
+            self._recent = [(k, image)] + [r for r in self._recent if r[0] != k][: RECENT_FRAMES - 1]
+            return image, self.path
 
     def _forward(self, k: int) -> np.ndarray:
         """Frame ``k`` read forward: from the open capture, or from a new one when ``k`` is behind it."""
