@@ -168,6 +168,25 @@ class BundleAdjuster:
                      ) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
         window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
+        removed = 0
+        for _ in range(self.config.local_passes - 1):  # ORB-SLAM: adjust, drop the outliers, adjust again
+            cfg, points = self._local_config(slam_map, window)
+            pycolmap.create_default_bundle_adjuster(
+                self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
+            chi2 = self.config.outlier_chi2
+            removed += remove_outlier_observations(slam_map, window, chi2 or self.config.max_reproj_error_px ** 2,
+                                                   scaled=chi2 > 0)
+        cfg, points = self._local_config(slam_map, window)
+        summary = pycolmap.create_default_bundle_adjuster(
+            self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
+        merged, completed, filtered = self._maintain(slam_map, set(window), min_tri_angle_deg)
+        filtered += removed
+        return BundleAdjustmentResult("local", len(window), len(points), str(summary.termination_type).split(".")[-1],
+                                      merged, completed, filtered, time.perf_counter() - t0, None)
+
+    def _local_config(self, slam_map: SlamMap, window: list[int]) -> tuple[pycolmap.BundleAdjustmentConfig, list]:
+        """Local BA's problem: the window's keyframes, their points (long tracks held), the gauge when nothing
+        outside the window holds it. Returns (config, the window's point ids)."""
         cfg = pycolmap.BundleAdjustmentConfig()
         for i in window:
             cfg.add_image(i)
@@ -187,20 +206,7 @@ class BundleAdjuster:
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         if len(window) >= slam_map.num_keyframes:  # nothing outside the window holds the gauge
             cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-        removed = 0
-        for _ in range(self.config.local_passes - 1):  # ORB-SLAM: adjust, drop the outliers, adjust again
-            pycolmap.create_default_bundle_adjuster(
-                self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
-            removed += remove_outlier_observations(slam_map, window, self.config.outlier_chi2
-                                                   or self.config.max_reproj_error_px ** 2, scaled=self.config.outlier_chi2 > 0)
-            if removed:
-                slam_map.changed(window)
-        summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
-        merged, completed, filtered = self._maintain(slam_map, set(window), min_tri_angle_deg)
-        filtered += removed
-        return BundleAdjustmentResult("local", len(window), len(points), str(summary.termination_type).split(".")[-1],
-                                      merged, completed, filtered, time.perf_counter() - t0, None)
+        return cfg, points
 
     def adjust_global(self, slam_map: SlamMap, normalize: bool | None = None,
                       min_tri_angle_deg: float | None = None, refine_focal: bool = False,
@@ -257,6 +263,7 @@ def remove_outlier_observations(slam_map: SlamMap, image_ids, chi2: float, scale
     (ORB-SLAM's outlier classification after BA). A point left with fewer than two observations is deleted
     (COLMAP's ``ObservationManager.delete_observation``). Returns the observations removed."""
     rec, obs = slam_map.reconstruction, slam_map.observations
+    slam_map.changed()  # track maintenance may have merged points since the ids were cached
     K = slam_map.pycolmap_camera.calibration_matrix()
     removed = 0
     for image_id in sorted(int(i) for i in image_ids):
