@@ -23,7 +23,7 @@ from pathlib import Path
 
 from ..errors import OutputError
 from ..interrupt import signals_blocked
-from .run_dir import is_replaceable
+from .run_dir import TEMP_MARKER, is_replaceable, mark_temporary, not_a_regular_file
 
 __all__ = ["atomic_write_text", "atomic_write_bytes", "atomic_dir"]
 
@@ -68,6 +68,9 @@ def _atomic_write(path: str | os.PathLike, chunks: Iterable[bytes]) -> Path:
     parent = _prepare_parent(path)
     if path.is_dir():
         raise OutputError(f"{path}: is a folder, cannot be replaced by a file")
+    kind = not_a_regular_file(path)
+    if kind:
+        raise OutputError(f"{path}: is {kind}; slamkit replaces only regular files, so it was left as it is")
     mode = _new_file_mode(path)
     try:
         fd, tmp_name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -140,6 +143,11 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp"))
     except OSError as e:
         raise OutputError(f"{parent}: output folder is not writable ({e.strerror or e})") from e
+    try:
+        mark_temporary(tmp, path)  # only a folder holding this marker is ever removed as a stale temporary
+    except OSError as e:
+        _remove_tree(tmp)
+        raise OutputError(write_failure(path, e, 0, path.exists(), "folder")) from None
     existed = path.exists()
     try:
         yield tmp
@@ -211,7 +219,9 @@ def _commit(tmp: Path, path: Path, parent: Path) -> Path | None:
         with signals_blocked():
             if path.exists():
                 backup = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".old"))
+                mark_temporary(backup, path)
                 os.replace(path, backup / path.name)
+            os.unlink(tmp / TEMP_MARKER)
             os.replace(tmp, path)
     except BaseException as e:
         note = ""
