@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from ..errors import OutputError, SlamkitError
+from ..io.fingerprint import changed, frame_file
 from ..io.run_dir import source_paths
 from ..sources import open_source
 from ..sources.base import FrameSource, ImageListSource
@@ -57,6 +58,24 @@ def source_position(run: SavedRun, source: FrameSource, frame: PosedFrame) -> in
         raise SlamkitError(f"{run.path}: frame {frame.index} (dataset frame {frame.frame_id}) is not frame {i} of "
                            f"the source {getattr(source, 'name', '?')!r}: is it the source the run was made on?")
     return i
+
+
+def check_unchanged(run: SavedRun, source: FrameSource, frames: list[PosedFrame]) -> None:
+    """SlamkitError naming the first of ``frames`` whose file is not the one the run read (missing, another
+    size, other bytes: :func:`slamkit.io.fingerprint.changed`): the source changed after the run, and its
+    poses would go with other images. Frames of a run saved before fingerprints were recorded pass."""
+    checked: set = set()
+    for f in frames:
+        i = source_position(run, source, f)
+        key = (str(frame_file(source, i)), f.fingerprint.get("sha256"))
+        if key in checked:  # a video: one file for every frame
+            continue
+        checked.add(key)
+        why = changed(f.fingerprint, source, i)
+        if why:
+            raise SlamkitError(f"{run.path}: frame {f.index} (dataset frame {f.frame_id}) is not the image the run "
+                               f"posed: {why}; the source changed after the run, so nothing was exported — restore "
+                               "its images, or run again on the source as it is now")
 
 
 def file_name(run: SavedRun, source: FrameSource, frame: PosedFrame, camera: ExportCamera) -> str:

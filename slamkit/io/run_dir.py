@@ -164,7 +164,25 @@ def source_paths(source) -> list[Path]:
     paths = getattr(source, "paths", None)
     if paths is not None and len(paths):
         out.extend({Path(paths[0]).parent, Path(paths[-1]).parent})
+        root = _dataset_root(str(getattr(source, "name", "")), Path(paths[0]))
+        if root is not None:
+            out.append(root)
     return out
+
+
+def _dataset_root(name: str, image: Path) -> Path | None:
+    """The dataset folder of an opened source whose images live below it (TUM's ``ROOT/rgb/``, KITTI's
+    ``SEQ/image_0/``, EuRoC's ``mav0/cam0/data/``, 7-Scenes' ``SCENE/seq-01/``): the highest folder above
+    ``image`` named like a part of the source's name (``tum/ROOT``, ``kitti/SEQ``, ``7scenes/SCENE/SEQ``), so
+    the Python API refuses ``save_run(slam, "ROOT/depth")`` as the CLI does with the spec ``ROOT``."""
+    parts = [p for p in name.split("/")[1:] if p]
+    if "/" not in name or not parts:
+        return None
+    found = None
+    for folder in list(image.parents)[:5]:
+        if folder.name in parts:
+            found = folder
+    return found
 
 
 def _resolved(p: Path) -> Path:
