@@ -118,8 +118,9 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
 
     def on_signal(signum: int, count: int) -> None:
         slam = state.get("slam")
-        what = ("stopping before the first frame" if slam is None or not slam.records
-                else "finishing the final bundle adjustment" if slam.done else "finishing the frame in progress")
+        if slam is None or not slam.records:  # starting: nothing to save; the one final line says what happened
+            return
+        what = "finishing the final bundle adjustment" if slam.done else "finishing the frame in progress"
         if count == 1:
             notify(f"{signal_name(signum)} received: {what}, then saving to {out} "
                    f"(send it {StopRequest.abort_after - 1} more times to stop at once without saving)")
