@@ -49,15 +49,18 @@ def source_position(run: SavedRun, source: FrameSource, frame: PosedFrame) -> in
     i = frame.index * int(run.config.frame_skip)
     if not 0 <= i < len(source) or int(source.frame_ids[i]) != frame.frame_id:
         if run.source_frames is not None and run.source_frames != len(source):
-            where = next(iter(source_paths(source)), None)
-            raise SlamkitError(f"{run.path}: its source {getattr(source, 'name', '?')!r}"
-                               f"{f' ({where})' if where else ''} has {len(source)} frames now but had "
-                               f"{run.source_frames} when the run was made: images were deleted, added or moved "
-                               f"since (dataset frame {frame.frame_id} is not where it was); restore them, or "
-                               "pass the source the run used (source=)")
+            raise _count_changed(run, source, f"dataset frame {frame.frame_id} is not where it was")
         raise SlamkitError(f"{run.path}: frame {frame.index} (dataset frame {frame.frame_id}) is not frame {i} of "
                            f"the source {getattr(source, 'name', '?')!r}: is it the source the run was made on?")
     return i
+
+
+def _count_changed(run: SavedRun, source: FrameSource, detail: str) -> SlamkitError:
+    where = next(iter(source_paths(source)), None)
+    return SlamkitError(f"{run.path}: its source {getattr(source, 'name', '?')!r}{f' ({where})' if where else ''} has "
+                        f"{len(source)} frames now but had {run.source_frames} when the run was made: images were "
+                        f"deleted, added or moved since ({detail}); restore them, or pass the source the run used "
+                        "(source=)")
 
 
 def check_unchanged(run: SavedRun, source: FrameSource, frames: list[PosedFrame]) -> None:
@@ -72,6 +75,8 @@ def check_unchanged(run: SavedRun, source: FrameSource, frames: list[PosedFrame]
             continue
         checked.add(key)
         why = changed(f.fingerprint, source, i)
+        if why and run.source_frames is not None and run.source_frames != len(source):
+            raise _count_changed(run, source, f"frame {f.index}: {why}")
         if why:
             raise SlamkitError(f"{run.path}: frame {f.index} (dataset frame {f.frame_id}) is not the image the run "
                                f"posed: {why}; the source changed after the run, so nothing was exported — restore "

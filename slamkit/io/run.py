@@ -107,8 +107,8 @@ def _frames_csv(slam: "Slam") -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     errors = getattr(slam, "errors", {})
-    w.writerow(["index", "frame_id", "timestamp", "status", "segment", "keyframe_image_id", "error",
-                *FINGERPRINT_COLUMNS])
+    w.writerow(["index", "frame_id", "timestamp", "status", "segment", "keyframe_image_id", *FINGERPRINT_COLUMNS,
+                "error"])
     indices = getattr(slam, "indices", None)
     for r in slam.records:
         if indices is not None and 0 <= r.index < len(indices):
@@ -116,7 +116,7 @@ def _frames_csv(slam: "Slam") -> str:
         else:
             print_ = dict.fromkeys(FINGERPRINT_COLUMNS, "")
         w.writerow([r.index, r.frame_id, f"{r.timestamp:.6f}", r.status, r.segment, r.keyframe_image_id,
-                    errors.get(r.index, ""), *(print_[c] for c in FINGERPRINT_COLUMNS)])
+                    *(print_[c] for c in FINGERPRINT_COLUMNS), errors.get(r.index, "")])
     return buf.getvalue()
 
 

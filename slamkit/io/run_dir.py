@@ -452,6 +452,12 @@ def out_dir_lock(out: str | os.PathLike, flag: str = "--out", what: str = "run f
             try:
                 _create_lock_file(path)
             except OSError as e:
+                if e.errno in (errno.ENOSPC, errno.EDQUOT):
+                    kept = (f"the previous {'file' if what == 'file' else 'folder'} {out} is intact" if
+                            Path(out).exists() else f"nothing was written to {out}")
+                    raise OutputError(f"no space left on the disk of {path.parent}: not even the lock file {path.name} "
+                                      f"could be written; {kept} — free some space (or choose another disk) and run "
+                                      "the same command again") from None
                 raise OutputError(f"{flag} {out}: lock file {path} cannot be created ({e.strerror or e})") from e
             continue
         if not stat.S_ISREG(st.st_mode):
