@@ -14,12 +14,16 @@ a resume) does not read every file again.
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
+import struct
 from pathlib import Path
+
+import numpy as np
 
 from .run_dir import file_sha256
 
-__all__ = ["FINGERPRINT_COLUMNS", "frame_file", "frame_fingerprint", "changed"]
+__all__ = ["FINGERPRINT_COLUMNS", "changed", "frame_file", "frame_fingerprint", "image_size_of"]
 
 FINGERPRINT_COLUMNS = ("file", "width", "height", "sha256")
 
@@ -44,13 +48,66 @@ def frame_file(source, i: int) -> Path | None:
     return Path(path) if isinstance(path, (str, os.PathLike)) and Path(path).is_file() else None
 
 
-def _size(source, path: Path) -> tuple[int, int]:
+_JPEG_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a JPEG's frame header (SOFn), walking the segments before it."""
+    pos = 2
+    for _ in range(1000):  # a bound against garbage
+        while pos < len(data) and data[pos] == 0xFF:
+            pos += 1
+        if pos + 3 > len(data):
+            return None
+        marker = data[pos]
+        pos += 1
+        if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+            continue
+        length = struct.unpack(">H", data[pos:pos + 2])[0]
+        if marker in _JPEG_SOF and pos + 7 <= len(data):
+            h, w = struct.unpack(">HH", data[pos + 3:pos + 7])
+            return (int(w), int(h)) if w > 0 and h > 0 else None
+        if length < 2:
+            return None
+        pos += length
+    return None
+
+
+def image_size_of(data: bytes) -> tuple[int, int]:
+    """(width, height) of an encoded image in pixels: from a PNG's or JPEG's header, else decoded from memory
+    (OpenCV never sees the file's name, which may not be UTF-8). ValueError when it is not an image."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR" and len(data) >= 24:
+        w, h = struct.unpack(">II", data[16:24])
+        return int(w), int(h)
+    if data[:2] == b"\xff\xd8":
+        size = _jpeg_size(data)
+        if size is not None:
+            return size
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+    if image is None:
+        raise ValueError("not an image OpenCV can decode")
+    return int(image.shape[1]), int(image.shape[0])
+
+
+def _measure(source, path: Path, memo: bool) -> tuple[int, int, str]:
+    """(width, height, SHA-256) of frame file ``path``: a video's decoded frame size and whole-file hash
+    (streamed), an image file's header size and hash (read once)."""
     if getattr(source, "paths", None) is None:  # a video: the decoded frames' size
         cam = source.camera
-        return int(cam.width), int(cam.height)
-    from ..sources.folder import image_size  # the header only
+        return int(cam.width), int(cam.height), _file_sha256(path) if memo else file_sha256(path)
+    if memo:
+        st = os.stat(path)
+        return _image_measure(str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+    return _image_measure.__wrapped__(str(path), 0, 0, 0)
 
-    return image_size(path)
+
+@functools.lru_cache(maxsize=1 << 16)
+def _image_measure(path: str, size: int, mtime_ns: int, ino: int) -> tuple[int, int, str]:
+    data = Path(path).read_bytes()
+    w, h = image_size_of(data)
+    return w, h, hashlib.sha256(data).hexdigest()
 
 
 def frame_fingerprint(source, i: int) -> dict[str, str]:
@@ -61,8 +118,8 @@ def frame_fingerprint(source, i: int) -> dict[str, str]:
     if path is None:
         return empty
     try:
-        w, h = _size(source, path)
-        return {"file": path.name, "width": str(w), "height": str(h), "sha256": _file_sha256(path)}
+        w, h, sha = _measure(source, path, memo=True)
+        return {"file": path.name, "width": str(w), "height": str(h), "sha256": sha}
     except Exception:  # noqa: BLE001 - an unreadable file (the run skipped it): nothing to record
         return {**empty, "file": path.name}
 
@@ -81,8 +138,7 @@ def changed(recorded: dict, source, i: int) -> str | None:
     if recorded.get("file") and path.name != recorded["file"]:
         return f"it is read from {path} now, the run read {recorded['file']}"
     try:
-        w, h = _size(source, path)
-        now = file_sha256(path)  # read again, never from the memo: this is the check
+        w, h, now = _measure(source, path, memo=False)  # read again, never from the memo: this is the check
     except Exception as e:  # noqa: BLE001
         return f"{path} cannot be read now ({e})"
     if (str(w), str(h)) != (str(recorded.get("width")), str(recorded.get("height"))):
