@@ -39,8 +39,7 @@ _HTML_MARK = '<meta name="generator" content="slamkit eval">'
 _MAP_MARK = "<!-- slamkit eval map -->"
 _OWN_CONTENT = {  # what makes a file slamkit's: its marker, or the text of a report an older slamkit wrote
     "report.md": (_MD_MARK, "(Umeyama on the matched camera centres), timestamps matched within"),
-    "report.html": (_HTML_MARK, "<title>slamkit evaluation</title>"
-            f"{_HTML_MARK}"),
+    "report.html": (_HTML_MARK, "<title>slamkit evaluation</title>"),
     "evaluation.json": ('"generator": "slamkit eval"', '"alignment": "sim3"'),
     "map.html": (_MAP_MARK, "slamkit map"),
 }

@@ -6,7 +6,8 @@ rename, the temporary file is removed and the old file (if any) is left untouche
 permissions of the file it replaces, or ``0o666 & ~umask`` when it is new (``mkstemp`` would give ``0o600``).
 
 A folder is written the same way with :func:`atomic_dir`: the caller fills a temporary sibling folder, which
-then takes the place of the old one. Replacing a non-empty folder takes two renames (old -> backup, new ->
+then takes the place of the old one. The temporary folder, and the folder the old one is moved into, hold
+slamkit's marker (:data:`slamkit.io.run_dir.TEMP_MARKER`), so a later clean-up removes only folders slamkit made. Replacing a non-empty folder takes two renames (old -> backup, new ->
 target), so there is an instant in which the target does not exist, but never one in which it is partial.
 """
 
@@ -221,7 +222,8 @@ def _commit(tmp: Path, path: Path, parent: Path) -> Path | None:
                 backup = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".old"))
                 mark_temporary(backup, path)
                 os.replace(path, backup / path.name)
-            os.unlink(tmp / TEMP_MARKER)
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp / TEMP_MARKER)  # the folder becomes the output: no longer a temporary
             os.replace(tmp, path)
     except BaseException as e:
         note = ""
