@@ -303,7 +303,8 @@ def _report(res: dict, run: Path, dest: Path) -> tuple[str, str]:
     if "map" in f:
         lines += [f"[Open the static 3D map view]({f['map']}) (self-contained HTML, works offline).", ""]
     if (run / "points.ply").exists():
-        ply = Path(os.path.relpath(run.resolve() / "points.ply", dest.resolve())).as_posix() if dest != run else "points.ply"
+        ply = ("points.ply" if dest == run else
+               Path(os.path.relpath(run.resolve() / "points.ply", dest.resolve())).as_posix())
         lines += [f"Point cloud: [points.ply]({ply}) (MeshLab, CloudCompare); COLMAP model in `sparse/`.", ""]
     lines += [_MD_MARK, ""]
     md = "\n".join(lines)

@@ -43,9 +43,10 @@ class RunFolderError(SlamkitError):
 class PosedFrame:
     """One posed frame of a saved run.
 
-    index: the frame's index in the source (model images are named ``frame_{index:06d}``); frame_id: its
-    number in the dataset; fingerprint: what the run recorded of its file (:mod:`slamkit.io.fingerprint`); timestamp: seconds; world_from_cam: (4, 4) camera-to-world from
-    ``trajectory_tum.txt``; image_id: its image in the run's model when it is a keyframe, else -1.
+    index: the frame's index in the source (model images are named ``frame_{index:06d}``); frame_id: its number
+    in the dataset; fingerprint: what the run recorded of its file (:mod:`slamkit.io.fingerprint`); timestamp:
+    seconds; world_from_cam: (4, 4) camera-to-world from ``trajectory_tum.txt``; image_id: its image in the
+    run's model when it is a keyframe, else -1.
     """
 
     index: int

@@ -7,8 +7,9 @@ permissions of the file it replaces, or ``0o666 & ~umask`` when it is new (``mks
 
 A folder is written the same way with :func:`atomic_dir`: the caller fills a temporary sibling folder, which
 then takes the place of the old one. The temporary folder, and the folder the old one is moved into, hold
-slamkit's marker (:data:`slamkit.io.run_dir.TEMP_MARKER`), so a later clean-up removes only folders slamkit made. Replacing a non-empty folder takes two renames (old -> backup, new ->
-target), so there is an instant in which the target does not exist, but never one in which it is partial.
+slamkit's marker (:data:`slamkit.io.run_dir.TEMP_MARKER`), so a later clean-up removes only folders slamkit
+made. Replacing a non-empty folder takes two renames (old -> backup, new -> target), so there is an instant in
+which the target does not exist, but never one in which it is partial.
 """
 
 from __future__ import annotations

@@ -12,6 +12,10 @@ keeps two processes from writing one folder at once.
 - **``out_dir_lock``**: an exclusive ``flock`` on ``PARENT/.NAME.lock`` for the whole run; a second writer
   fails at once naming the folder and the other process. The OS releases it when a process dies, so a lock
   file left by a killed process never blocks.
+- **Only what slamkit made is replaced.** The lock file begins with :data:`LOCK_MAGIC`; temporary and
+  moved-aside folders hold :data:`TEMP_MARKER`. A file or folder that only has the name of one (the user's
+  ``.NAME.lock``, ``.NAME.mine.tmp/``) is never taken, removed or overwritten; only regular files are replaced
+  (:func:`not_a_regular_file`: never a device node, FIFO or link).
 """
 
 from __future__ import annotations
@@ -32,9 +36,9 @@ from pathlib import Path
 
 from ..errors import OutputError
 
-__all__ = ["EXPORT_MARKER", "OUTPUT_KINDS", "REPORT_MARKER", "RUN_MARKER", "SESSION_MARKER", "check_out_dir", "check_output",
-           "is_replaceable", "is_run_folder", "out_dir_lock", "read_manifest", "remove_stale_temporaries", "source_paths",
-           "write_manifest"]
+__all__ = ["EXPORT_MARKER", "OUTPUT_KINDS", "REPORT_MARKER", "RUN_MARKER", "SESSION_MARKER", "TEMP_MARKER",
+           "check_out_dir", "check_output", "is_replaceable", "is_run_folder", "mark_temporary", "out_dir_lock",
+           "read_manifest", "remove_stale_temporaries", "source_paths", "write_manifest"]
 
 RUN_MARKER = ".slamkit-run"
 SESSION_MARKER = ".slamkit-session.json"
