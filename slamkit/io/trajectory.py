@@ -46,9 +46,10 @@ PIPE_TIMEOUT = 10.0
 gives up with an error instead of blocking forever (a FIFO nobody writes to)."""
 
 
-MAX_TEXT_BYTES = 256 * 2**20
-"""bytes: the largest text file (trajectory, ground truth, times) slamkit reads: 2.5 million TUM lines. A larger
-file, or a device that never ends (``--gt /dev/zero``), is refused after reading at most this much."""
+MAX_TEXT_BYTES = 64 * 2**20
+"""bytes: the largest text file (trajectory, ground truth, times) slamkit reads: about a million TUM lines
+(hours of motion capture at 100 Hz; parsing them takes about 1 GB of memory). A larger file, or a device
+that never ends (``--gt /dev/zero``), is refused after reading at most this much."""
 
 
 def _too_large(path: Path, size: str) -> FormatError:
