@@ -135,7 +135,7 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
         slam, resumed_after = _open(source, out, config, resume, resume_overrides, notify)
         state["slam"] = slam
         check_out_dir(out, [source, slam.source], overwrite)
-        if on_start is not None:
+        if on_start is not None and stop.signum is None:  # a signal while opening: stop now, not after on_start
             on_start(slam, resumed_after)
         if stop.signum is not None:  # before the first frame: nothing new to save
             return RunOutcome(out, INTERRUPTED, exit_code(stop.signum), f"{signal_name(stop.signum)} before the "
