@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import OutputError, SessionError, SlamkitError
+from ..errors import OutputError, SessionError, SlamkitError, shown
 from ..io import atomic_dir, atomic_write_text
 from ..io.run_dir import REPORT_MARKER, RUN_MARKER, check_output, is_run_folder, out_dir_lock
 from ..io.saved import check_json, check_run
@@ -105,7 +105,7 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
     else:
         with out_dir_lock(dest, flag="out", what="report folder"):
             with atomic_dir(dest, overwrite=(dest / REPORT_MARKER).is_file()) as tmp:
-                (tmp / REPORT_MARKER).write_text(f"slamkit eval report of {run.resolve()}\n")
+                (tmp / REPORT_MARKER).write_text(f"slamkit eval report of {shown(run.resolve())}\n")
                 _write_report(run, tmp, result, summary, est, gt_traj, kf_traj, a, r, plots, map_view)
         for key in ("report_md", "report_html"):
             result[key] = str(dest / Path(result[key]).name)

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import SlamConfig
-from ..errors import ConfigError, OutputError, SlamkitError
+from ..errors import ConfigError, OutputError, SlamkitError, shown
 from ..features import create_extractor
 from ..io.atomic import atomic_dir
 from ..io.run_dir import EXPORT_MARKER, check_output, out_dir_lock
@@ -118,7 +118,7 @@ def _export(run_dir: Path, out: Path, format: str, frames: str, undistort: bool 
     camera = ExportCamera.create(run.camera, bool(undistort))
     names = {f.index: file_name(run, src, f, camera) for f in selected}
     with atomic_dir(out, overwrite=(out / MARKER).is_file()) as tmp:  # _check_out allowed it
-        (tmp / MARKER).write_text(f"slamkit export of {run_dir.resolve()}\n")
+        (tmp / MARKER).write_text(f"slamkit export of {shown(run_dir.resolve())}\n")
         extra = _write_images(run, src, selected, camera, tmp / "images", names, progress)
         rec = build_model(run.model, selected, camera, names, extra)
         if format == "colmap":

@@ -107,8 +107,14 @@ def write_image(run: SavedRun, source: FrameSource, frame: PosedFrame, camera: E
         return None
     decoded = source[source_position(run, source, frame)]
     rgb = camera.undistort_image(decoded.color)
-    if not cv2.imwrite(str(out), cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR)):
-        raise OutputError(f"{out}: image cannot be written")
+    # encoded by OpenCV, written by Python: OpenCV's writer crashes on a name that is not UTF-8
+    ok, png = cv2.imencode(out.suffix or ".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    try:
+        if not ok:
+            raise OSError("the image cannot be encoded")
+        out.write_bytes(png.tobytes())
+    except OSError as e:
+        raise OutputError(f"{out}: image cannot be written ({e.strerror or e})") from None
     return decoded
 
 

@@ -34,7 +34,7 @@ import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from ..errors import OutputError
+from ..errors import OutputError, shown
 
 __all__ = ["EXPORT_MARKER", "OUTPUT_KINDS", "REPORT_MARKER", "RUN_MARKER", "SESSION_MARKER", "TEMP_MARKER",
            "check_out_dir", "check_output", "is_replaceable", "is_run_folder", "mark_temporary", "out_dir_lock",
@@ -520,7 +520,7 @@ _TEMP_TEXT = "slamkit temporary folder"
 
 def mark_temporary(folder: Path, of: Path) -> None:
     """Write :data:`TEMP_MARKER` into ``folder``, a temporary folder slamkit just made beside ``of``."""
-    (folder / TEMP_MARKER).write_text(f"{_TEMP_TEXT} of {of.name} (pid {os.getpid()}); removed when it is done\n")
+    (folder / TEMP_MARKER).write_text(f"{_TEMP_TEXT} of {shown(of.name)} (pid {os.getpid()}); removed when it is done\n")
 
 
 def is_own_temporary(folder: Path) -> bool:
