@@ -79,7 +79,8 @@ def test_chi2_keeps_coarse_keypoints_the_flat_filter_drops_and_drops_only_true_o
     up to 3.6 px per axis), the chi-square test at the keypoint's scale removes about 5 % of observations at
     every level (the chi-square tail), never most of a coarse level."""
     slam_map, X, _, octave = noisy_map(seed=1)
-    BundleAdjuster(BundleAdjustmentConfig(normalize=False, max_reproj_error_px=1e9, min_tri_angle_deg=0.0)
+    BundleAdjuster(BundleAdjustmentConfig(normalize=False, max_reproj_error_px=1e9, min_tri_angle_deg=0.0,
+                                          outlier_chi2=0.0)
                    ).adjust_global(slam_map, normalize=False)
     total = len(_observations(slam_map))
     before = _observations(slam_map)
@@ -93,7 +94,8 @@ def test_chi2_keeps_coarse_keypoints_the_flat_filter_drops_and_drops_only_true_o
     assert (level >= 6).sum() < 0.1 * coarse.sum() * 5  # coarse observations are not singled out
 
     slam_map2, _, _, _ = noisy_map(seed=1)
-    BundleAdjuster(BundleAdjustmentConfig(normalize=False, max_reproj_error_px=1e9, min_tri_angle_deg=0.0)
+    BundleAdjuster(BundleAdjustmentConfig(normalize=False, max_reproj_error_px=1e9, min_tri_angle_deg=0.0,
+                                          outlier_chi2=0.0)
                    ).adjust_global(slam_map2, normalize=False)
     before2 = _observations(slam_map2)
     remove_outlier_observations(slam_map2, slam_map2.keyframes, 4.0 ** 2, scaled=False)  # COLMAP's flat 4 px
@@ -133,3 +135,12 @@ def test_local_ba_removes_a_planted_outlier_between_its_passes():
         results[passes] += (np.linalg.norm(T[:, 3] - poses[-1][:3, 3]),)
     assert results[2][3] < 0.95 * results[1][3]
     assert results[2][2].filtered >= 30
+
+
+def test_the_default_classifies_outliers_at_the_keypoint_scale_and_the_seed_preset_does_not():
+    from slamkit import SlamConfig
+
+    ba = SlamConfig().ba
+    assert ba.outlier_chi2 == CHI2 and ba.local_passes == 2
+    seed = SlamConfig.preset("seed").ba
+    assert seed.outlier_chi2 == 0 and seed.local_passes == 1

@@ -43,13 +43,16 @@ class BundleAdjustmentConfig:
     min_tri_angle_deg: float = 1.5
     """Points with a smaller triangulation angle are filtered after BA (after a starving keyframe's BA:
     ``mapper.starved_tri_angle_deg``, so its points survive it)."""
-    outlier_chi2: float = 0.0
+    outlier_chi2: float = 5.991
     """ORB-SLAM's outlier test after each BA: an observation whose squared reprojection error exceeds this
-    times its keypoint's scale squared (sigma = 1.2^octave for ORB; :func:`keypoint_scales`) is removed from
-    its track (5.991: chi-square with two degrees of freedom at 95 %, ORB-SLAM's), so a fine-level keypoint is
-    held to 2.4 px and a coarse one to its level's noise; points are then filtered by triangulation angle
-    only. 0: COLMAP's flat ``max_reproj_error_px`` for every observation."""
-    local_passes: int = 1
+    times its keypoint's scale squared (sigma = 1.2^octave for ORB; :func:`~slamkit.map.keypoint_scales`) is
+    removed from its track (5.991: chi-square with two degrees of freedom at 95 %, ORB-SLAM's), so a fine-level
+    keypoint is held to 2.4 px and a coarse one to its level's noise; points are then filtered by
+    triangulation angle only. 0: COLMAP's flat ``max_reproj_error_px`` for every observation (the ``seed``
+    preset). With ``local_passes`` = 2 it took 7-Scenes at every 5th frame from 5.03 +- 0.77 to 2.93 +- 0.04
+    cm (3 seeds), and cost KITTI 07 0.36 -> 0.37 m (benchmarks/HISTORY.md, "Local mapping by default (issue
+    39)")."""
+    local_passes: int = 2
     """Local BA runs this many times, with the outlier test between the passes (ORB-SLAM runs two: the
     second adjusts without the outliers the first exposed)."""
     loss: str = "soft_l1"
