@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields
 
 
 @dataclass(frozen=True)
@@ -91,30 +91,17 @@ class SelfCalibrationConfig:
     """Bundle adjustment refines the principal point too (else it stays at the image centre)."""
 
     def validate(self) -> None:
-        if self.window_frames < 2:
-            raise ConfigError(f"self_calibration.window_frames must be >= 2 (got {self.window_frames})")
-        if self.max_pairs < 1:
-            raise ConfigError(f"self_calibration.max_pairs must be >= 1 (got {self.max_pairs})")
-        if not 0 < self.min_flow < 1:
-            raise ConfigError(f"self_calibration.min_flow must be in (0, 1) (got {self.min_flow})")
-        if not 0 < self.max_homography_ratio <= 1:
-            raise ConfigError("self_calibration.max_homography_ratio must be in (0, 1] "
-                              f"(got {self.max_homography_ratio})")
-        if not 1 <= self.min_fov_deg < self.max_fov_deg <= 170:
+        check_fields(self, "self_calibration", {
+            "window_frames": ("[2, 1000]", "the window's frames are kept in memory"), "max_pairs": "[1, inf)",
+            "min_flow": "(0, 1)", "max_homography_ratio": "(0, 1]", "min_fov_deg": "[1, 170]",
+            "max_fov_deg": "[1, 170]", "fallback_fov_deg": ("[0, 170]", "0 or 1 to 170 degrees"),
+            "weak_uncertainty": "(0, 10]", "min_refine_keyframes": "[3, inf)", "refine_keyframes": "[0, inf)",
+            "max_radial": "(0, 10]", "max_final_change": "(0, 100]"})
+        if not self.min_fov_deg < self.max_fov_deg:
             raise ConfigError("self_calibration needs 1 <= min_fov_deg < max_fov_deg <= 170 "
                               f"(got {self.min_fov_deg}, {self.max_fov_deg})")
         if self.fallback_fov_deg and not 1 <= self.fallback_fov_deg <= 170:
             raise ConfigError(f"self_calibration.fallback_fov_deg must be 0 or in [1, 170] (got {self.fallback_fov_deg})")
-        if self.weak_uncertainty <= 0:
-            raise ConfigError(f"self_calibration.weak_uncertainty must be > 0 (got {self.weak_uncertainty})")
-        if self.refine_keyframes < 0:
-            raise ConfigError(f"self_calibration.refine_keyframes must be >= 0 (got {self.refine_keyframes})")
-        if not self.max_final_change > 0:
-            raise ConfigError(f"self_calibration.max_final_change must be > 0 (got {self.max_final_change})")
-        if not self.max_radial > 0:
-            raise ConfigError(f"self_calibration.max_radial must be > 0 (got {self.max_radial})")
-        if not 3 <= self.min_refine_keyframes:
-            raise ConfigError(f"self_calibration.min_refine_keyframes must be >= 3 (got {self.min_refine_keyframes})")
 
 
 @dataclass(frozen=True)
@@ -234,15 +221,15 @@ def _argmin_log(grid: np.ndarray, cost: np.ndarray) -> float:
     return float(grid[k])
 
 
-def estimate_focal(grays: list[np.ndarray], config: SelfCalibrationConfig = SelfCalibrationConfig(),
-                   seed: int = 0) -> FocalEstimate:
-    """The focal length of the camera of ``grays`` (consecutive grey frames), principal point at the centre;
-    see the module docstring."""
+def pair_costs(grays: list[np.ndarray], config: SelfCalibrationConfig = SelfCalibrationConfig()
+               ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
+    """(the informative frame pairs (a, b), their (n, len(grid)) costs, the focal lengths of the grid) of
+    consecutive grey frames; see the module docstring."""
     h, w = grays[0].shape[:2]
     cx, cy = (w - 1) / 2.0, (h - 1) / 2.0
     grid = focal_grid(w, h, config)
     tracks = track_corners(grays)
-    costs = []
+    pairs, costs = [], []
     for a, b in choose_pairs(tracks, max(w, h), config):
         x1, x2 = _pair_matches(tracks[a], tracks[b])
         try:
@@ -260,6 +247,22 @@ def estimate_focal(grays: list[np.ndarray], config: SelfCalibrationConfig = Self
         inliers = inl.ravel() == 1  # least squares on the inliers (normalized 8-point): less biased than RANSAC's F
         F8, _ = cv2.findFundamentalMat(x1[inliers], x2[inliers], cv2.FM_8POINT)
         costs.append(essential_cost(F8[:3] if F8 is not None and F8.shape[0] >= 3 else F, grid, cx, cy))
+        pairs.append((a, b))
+    return pairs, np.array(costs).reshape(len(costs), len(grid)), grid
+
+
+def estimate_focal(grays: list[np.ndarray], config: SelfCalibrationConfig = SelfCalibrationConfig(),
+                   seed: int = 0) -> FocalEstimate:
+    """The focal length of the camera of ``grays`` (consecutive grey frames), principal point at the centre;
+    see the module docstring."""
+    pairs, costs, grid = pair_costs(grays, config)
+    return focal_from_costs(pairs, costs, grid, len(grays), config, seed)
+
+
+def focal_from_costs(pairs: list[tuple[int, int]], costs: np.ndarray, grid: np.ndarray, num_frames: int,
+                     config: SelfCalibrationConfig = SelfCalibrationConfig(), seed: int = 0) -> FocalEstimate:
+    """The estimate and its uncertainty from the pairs' costs (:func:`pair_costs`)."""
+    grays = range(num_frames)
     n = len(costs)
     if n == 0:
         return FocalEstimate(float("nan"), math.inf, 0, len(grays), True,
