@@ -121,10 +121,11 @@ def check_number(value, name: str, interval: str | None = None, *, integer: bool
     why = f"{name} must be {'an integer' if integer else 'a finite number'}"
     seed = is_seed(name.rsplit(".", 1)[-1])
     if interval is not None:
-        shown_interval = interval.replace("C_INT_MAX", str(C_INT_MAX))
-        if integer and not seed and _interval(interval)[1] == math.inf:
-            shown_interval = shown_interval[:shown_interval.rindex(",")] + f", {C_INT_MAX}]"
-        why += f" in {shown_interval}"
+        low, high, low_closed, _ = _interval(interval)
+        if high == math.inf:  # one-sided: ">= 1", with the C int bound of an integer that is not a seed
+            why += f" {'>=' if low_closed else '>'} {low:g}" + (f" and <= {C_INT_MAX}" if integer and not seed else "")
+        else:
+            why += f" in {interval.replace('C_INT_MAX', str(C_INT_MAX))}"
     why += f" (got {shown}{'; ' + hint if hint else ''})"
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise ConfigError(why)

@@ -132,7 +132,7 @@ def test_check_number_intervals():
     for value, interval in ((1.0, "[0, 1)"), (0.0, "(0, 1]"), (math.nan, None), (-math.inf, None), (2**31, None)):
         with pytest.raises(ConfigError, match=r"^x "):
             check_number(value, "x", interval, integer=isinstance(value, int))
-    with pytest.raises(ConfigError, match=r"n must be an integer in \[1, 2147483647\] \(got 2147483648\)"):
+    with pytest.raises(ConfigError, match=r"n must be an integer >= 1 and <= 2147483647 \(got 2147483648\)"):
         check_number(2**31, "n", "[1, inf)", integer=True)
     with pytest.raises(ConfigError, match=r"an integer"):
         check_number(1.5, "n", "[1, inf)", integer=True)
