@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from slamkit.sources import open_source
-from slamkit.stages.self_calibration import (COVERAGE, MODEL_ERROR, FocalEstimate, SelfCalibrationConfig,
+from slamkit.stages.self_calibration import (COVERAGE, MIN_AXIS_GAP, MODEL_ERROR, FocalEstimate, SelfCalibrationConfig,
                                              SelfCalibrator, axis_gap, estimate_focal, focal_from_costs, focal_grid)
 
 
@@ -60,17 +60,20 @@ def test_pairs_whose_optical_axes_meet_are_left_out():
     assert axis_gap(meet, cx, cy) < 1e-6
     # the same with a small vertical offset: the axes pass each other
     apart = fundamental(R, -R @ np.array([1.0, 0.3, 0]))
-    assert axis_gap(apart, cx, cy) > 0.005 * 640
+    assert axis_gap(apart, cx, cy) > MIN_AXIS_GAP * 640
 
     grid = focal_grid(640, 480, SelfCalibrationConfig())
     costs = np.ones((6, len(grid)))
     pairs = [(0, 2), (10, 12), (20, 22), (30, 32), (40, 42), (50, 52)]
     est = focal_from_costs(pairs, costs, grid, np.zeros(6), 60)
     assert est.weak and est.num_pairs == 0 and "6 left out: their optical axes meet" in est.reason
+    est = focal_from_costs(pairs, costs, grid, np.full(6, 0.01), 60)
+    assert est.num_pairs == 6 and "left out" not in est.reason
 
 
 def test_a_weak_estimate_line_has_no_interval():
     weak = FocalEstimate(512.0, 0.3, 12, 60, True, "the frame pairs disagree by 30 % (one standard deviation)")
     assert "±" not in weak.describe() and "f=512.0 px" in weak.describe() and weak.interval == math.inf
     strong = FocalEstimate(512.0, 0.01, 40, 60, False)
-    assert strong.describe() == f"f=512.0 px ± {100 * COVERAGE * 0.01:.1f} % from 40 frame pairs"
+    assert strong.describe() == (f"f=512.0 px ± {100 * COVERAGE * 0.01:.1f} % (for an undistorted lens) from 40 "
+                                 "frame pairs")
