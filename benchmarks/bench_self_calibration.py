@@ -163,11 +163,15 @@ def first_frames(cases: list[Case], seeds: int, jobs: int, csv_path: Path) -> in
     """``--first-frames``: per case, how often the interval of the first frames' estimate covers the true
     focal length (weak estimates show none and are counted apart)."""
     runs = []
-    with mp.get_context("spawn").Pool(jobs, maxtasksperchild=4) as pool:
+    pool = mp.get_context("spawn").Pool(jobs, maxtasksperchild=4)
+    try:
         for r in pool.imap_unordered(first_frames_one, [(c, s) for c in cases for s in range(seeds)]):
             runs.append(r)
             print(" ".join(f"{k}={r[k]:.4g}" if isinstance(r.get(k), float) else f"{k}={r.get(k)}"
                            for k in FIRST_COLUMNS if k in r), flush=True)
+    finally:
+        pool.close()  # workers exit on their own (terminating them mid-teardown makes pycolmap print a trace)
+        pool.join()
     print("| case | seeds | weak | covered / not weak | error % (median abs) | ± % shown (median) |")
     print("|---|---|---|---|---|---|")
     for c in cases:

@@ -321,9 +321,9 @@ def focal_from_costs(pairs: list[tuple[int, int]], costs: np.ndarray, grid: np.n
     circled = (f" ({circling} left out: their optical axes meet, as when moving along them or circling what the "
                "camera looks at)" if circling else "")
     if n == 0:
-        return FocalEstimate(float("nan"), math.inf, 0, num_frames, True,
-                             "no frame pair with enough motion that is not a rotation or a plane" + circled, grid,
-                             np.zeros(len(grid)))
+        why = (f"the optical axes meet in all {circling} frame pairs (moving along them, or circling what the "
+               "camera looks at)" if circling else "no frame pair with enough motion that is not a rotation or a plane")
+        return FocalEstimate(float("nan"), math.inf, 0, num_frames, True, why, grid, np.zeros(len(grid)))
     total = costs.sum(axis=0)
     focal = _argmin_log(grid, total)
     blocks = pairs[:, 0] // BLOCK_FRAMES
@@ -338,15 +338,16 @@ def focal_from_costs(pairs: list[tuple[int, int]], costs: np.ndarray, grid: np.n
     uncertainty = math.hypot(spread, MODEL_ERROR)
     reason = ""
     if n < 3:
-        reason = f"only {n} informative frame pair{'s' if n != 1 else ''}{circled}"
+        reason = f"only {n} informative frame pair{'s' if n != 1 else ''}"
     elif len(members) < 2:
-        reason = f"its {n} frame pairs all start within {BLOCK_FRAMES} frames{circled}"
+        reason = f"its {n} frame pairs all start within {BLOCK_FRAMES} frames"
     elif not grid[1] < focal < grid[-2]:
         reason = (f"the best focal length is at the end of the range searched ({config.min_fov_deg:g}-"
                   f"{config.max_fov_deg:g} degrees of view)")
     elif uncertainty > config.weak_uncertainty:
         reason = (f"the frame pairs disagree by {100 * spread:.0f} % (one standard deviation): motion mostly "
                   "straight ahead or mostly rotation")
+    reason += circled if reason else ""
     return FocalEstimate(focal, uncertainty, n, num_frames, bool(reason), reason, grid, total)
 
 
