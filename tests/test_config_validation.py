@@ -38,7 +38,8 @@ ACCEPTED: dict[tuple[str, str], str] = {
     **{("weights_dir", p): "a folder name (any text); checked when a learned extractor or matcher is created"
        for p in PROBES},
     **{("camera", p): "a focal length in pixels; checked against the image size when the source is opened "
-                      "(Intrinsics' sane range: fields of view from 1 to 170 degrees)" for p in ("1e20", "10**20", "2**31")},
+                      "(Intrinsics' sane range: fields of view from 1 to 170 degrees)"
+       for p in ("1e20", "10**20", "2**31")},
 }
 """(dotted field, probe name) -> why that value is accepted on purpose."""
 
