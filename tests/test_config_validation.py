@@ -165,10 +165,9 @@ def test_a_seed_beyond_32_bits_runs_and_repeats():
 
 
 def test_the_cli_refuses_a_bad_value_in_one_line(tmp_path: Path):
-    """``--set`` values that used to fail inside pycolmap: one line naming the parameter, exit 2, no run."""
-    for setting, name in (("initializer.max_error_px=nan", "initializer.max_error_px"),
-                          ("ba.local_iterations=-1", "ba.local_iterations"),
-                          ("ba.min_tri_angle_deg=nan", "ba.min_tri_angle_deg")):
+    """A ``--set`` value that used to fail inside pycolmap, and a huge ``--frame-skip``: one line naming the
+    parameter, exit 2, no run (the other values: the generated test above, through the same ``with_overrides``)."""
+    for setting, name in (("initializer.max_error_px=nan", "initializer.max_error_px"),):
         r = subprocess.run([sys.executable, "-m", "slamkit.cli", "run", "synthetic:sideways?frames=10", "--out",
                             str(tmp_path / "out"), "-q", "--set", setting], capture_output=True, text=True, timeout=120)
         assert r.returncode == 2, r.stderr
