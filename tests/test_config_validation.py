@@ -178,3 +178,27 @@ def test_the_cli_refuses_a_bad_value_in_one_line(tmp_path: Path):
                         str(tmp_path / "out"), "-q", "--frame-skip", str(10**20)], capture_output=True, text=True,
                        timeout=120)
     assert r.returncode == 2 and "frame_skip" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("spec, words", [
+    ("synthetic:sideways?frames=1e11", "frames must be an integer >= 2 and <= 100000"),
+    ("synthetic:sideways?frames=100001", "frames must be an integer >= 2 and <= 100000"),
+    ("synthetic:block-loop?laps=1000000", "frames must be an integer >= 2 and <= 100000"),  # before allocating
+    ("synthetic:sideways?noise=nan", "noise='nan' must be a finite number"),
+    ("synthetic:sideways?speed=inf", "speed='inf' must be a finite number"),
+    ("synthetic:handheld?seed=-1", "seed='-1' must be >= 0"),
+])
+def test_synthetic_specs_are_finite_and_bounded_before_allocating(spec, words):
+    from slamkit.sources.synthetic import open_synthetic
+
+    with pytest.raises(ConfigError, match=re.escape(words)):
+        open_synthetic(spec)
+
+
+def test_a_synthetic_seed_of_any_size_is_exact_and_deterministic():
+    from slamkit.sources.synthetic import open_synthetic, parse_spec
+
+    assert parse_spec(f"synthetic:handheld?seed={2**70 + 1}")[1]["seed"] == 2**70 + 1  # not rounded by a float
+    a, b = (open_synthetic(f"synthetic:handheld?frames=5&noise=1&seed={2**70 + 1}") for _ in range(2))
+    np.testing.assert_array_equal(a.gt_poses, b.gt_poses)
+    np.testing.assert_array_equal(a.image(3), b.image(3))

@@ -27,7 +27,7 @@ MAX_FRAMES = 100_000
 
 def _check_frames(n: int) -> int:
     if not (math.isfinite(n) and int(n) == n and 2 <= n <= MAX_FRAMES):
-        raise ConfigError(f"frames must be an integer in [2, {MAX_FRAMES}] (got {n:g})")
+        raise ConfigError(f"frames must be an integer >= 2 and <= {MAX_FRAMES} (got {n:g})")
     return int(n)
 
 

@@ -332,7 +332,7 @@ def parse_spec(spec: str) -> tuple[str, dict[str, float | int]]:
         if key == "seed" and number < 0:
             raise ConfigError(f"{spec!r}: parameter seed={value!r} must be >= 0 (any non-negative integer)")
         if key == "frames" and not 2 <= number <= MAX_FRAMES:
-            raise ConfigError(f"{spec!r}: parameter frames={value!r} must be in [2, {MAX_FRAMES}]")
+            raise ConfigError(f"{spec!r}: frames must be an integer >= 2 and <= {MAX_FRAMES} (got {value})")
         params[key] = number
     return motion, params
 
