@@ -288,7 +288,7 @@ MIN_AXIS_GAP = 0.002
 out: their optical axes (nearly) meet, and F then says nothing about the focal length. Circling the cube of
 the rendered room while looking at it, every pair is below 0.001, and the estimate without this rule was 40 %
 short with a bootstrap spread of 2 %; moving straight ahead, every pair is near 0 (benchmarks/HISTORY.md,
-"Self-calibration: an honest interval")."""
+"Self-calibration", "Session of issue 40: an honest interval")."""
 
 BLOCK_FRAMES = 10
 """The bootstrap resamples the pairs in blocks by their first frame, this many frames a block: pairs that share
