@@ -62,7 +62,7 @@ class BundleAdjustmentConfig:
         check_fields(self, "ba", {
             "local_window": "[1, inf)", "local_iterations": "[1, inf)", "local_max_track_length": "[0, inf)",
             "global_growth": "(0, 100]", "global_min_keyframes": "[0, inf)", "global_max_keyframes": "[0, inf)",
-            "global_iterations": "[1, inf)", "max_reproj_error_px": "(0, 1e5]", "min_tri_angle_deg": "[0, 45)",
+            "global_iterations": "[1, inf)", "max_reproj_error_px": "(0, 1e9]", "min_tri_angle_deg": "[0, 45)",
             "function_tolerance": "[0, 1)",
             "num_threads": ("[-1, 1024]", "-1: all cores, else 1 to 1024 threads")})
         if self.num_threads == 0:

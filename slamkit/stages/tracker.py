@@ -78,8 +78,8 @@ class TrackerConfig:
 
     def validate(self) -> None:
         check_fields(self, "tracker", {
-            "max_error_px": "(0, 1e5]", "min_inliers": "[4, inf)", "search_radius_px": "(0, 1e5]",
-            "narrow_search_radius_px": "(0, 1e5]", "refine_radius_px": "(0, 1e5]",
+            "max_error_px": "(0, 1e9]", "min_inliers": "[4, inf)", "search_radius_px": "(0, 1e9]",
+            "narrow_search_radius_px": "(0, 1e9]", "refine_radius_px": "(0, 1e9]",
             "prediction_min_inlier_ratio": ("(0, 100]", "> 1 turns the motion-model pose off"),
             "local_map_rounds": "[1, inf)", "local_keyframes": "[0, inf)", "recheck_inlier_ratio": "[0, 1]",
             "random_seed": "[0, inf)"})
