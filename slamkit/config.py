@@ -87,6 +87,9 @@ class SlamConfig:
 
     def validate(self) -> "SlamConfig":
         _check_field_types(self, "SlamConfig")
+        if not 50 <= self.num_features <= MAX_FEATURES:
+            raise ConfigError(f"num_features must be between 50 and {MAX_FEATURES} (got {self.num_features}; "
+                              "the extractors take a C int, and more keypoints than pixels are never found)")
         check_fields(self, "", RANGES, nested=False)  # the stage configs: their validate() below
         if self.features not in available_extractors():
             if self.features in FEATURE_PIPELINES:
