@@ -202,3 +202,13 @@ def test_a_synthetic_seed_of_any_size_is_exact_and_deterministic():
     a, b = (open_synthetic(f"synthetic:handheld?frames=5&noise=1&seed={2**70 + 1}") for _ in range(2))
     np.testing.assert_array_equal(a.gt_poses, b.gt_poses)
     np.testing.assert_array_equal(a.image(3), b.image(3))
+
+
+def test_open_source_bounds_frame_skip_and_max_frames_too():
+    """The Python API's ``open_source(..., frame_skip=)`` without a SlamConfig: the same one line."""
+    from slamkit.sources import open_source
+
+    for kw, name in ((dict(frame_skip=10**20), "frame_skip"), (dict(max_frames=10**20), "max_frames"),
+                     (dict(frame_skip=0), "frame_skip")):
+        with pytest.raises(ConfigError, match=f"^{name} must be >= 1 and <= 2147483647"):
+            open_source("synthetic:sideways?frames=10", **kw)
