@@ -37,7 +37,7 @@ import pandas as pd
 import pycolmap
 
 from .config import ALIASES, SlamConfig
-from .errors import ConfigError, OutputError, SlamkitError
+from .errors import ConfigError, OutputError, SlamkitError, check_number
 from .eval import ate, rpe
 from .io import atomic_write_bytes, atomic_write_text
 from .io.run_dir import check_output, out_dir_lock
@@ -159,13 +159,19 @@ class Task:
         return f"{safe}_s{self.seed}_{digest}" if safe else f"s{self.seed}_{digest}"
 
 
+MAX_RUNS = 1_000_000
+"""The most runs one sweep may plan (sources x combinations x repeats), checked before the list is made."""
+
+
 def plan(sources: Iterable[str], grid: Grid, repeats: int = 1) -> list[Task]:
     """Every (source, combination, repeat) of the sweep, in order."""
-    if repeats < 1:
-        raise ConfigError(f"repeats must be >= 1 (got {repeats})")
+    check_number(repeats, "repeats", f"[1, {MAX_RUNS}]", integer=True)
     sources = [str(s) for s in sources]
     if not sources:
         raise ConfigError("no sources to sweep")
+    if len(sources) * len(grid) * repeats > MAX_RUNS:
+        raise ConfigError(f"the sweep has {len(sources)} source(s) x {len(grid)} combination(s) x {repeats} "
+                          f"repeat(s) = {len(sources) * len(grid) * repeats} runs, more than {MAX_RUNS}")
     return [Task(s, tuple(combo.items()), r)
             for s in sources for combo in grid.combinations() for r in range(repeats)]
 
@@ -275,9 +281,9 @@ def check_sweep_args(out_dir: str | os.PathLike, workers: int | None, *, flag_ou
     """Refuse a negative worker count and a sweep folder that may not be written, before any run
     (ConfigError / OutputError naming the option): a file, a folder of other files than a sweep, a run
     folder or anything inside one, a source (:func:`slamkit.io.run_dir.check_output`)."""
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or not 0 <= workers <= 1024):
         raise ConfigError(f"{flag_workers} {workers}: must be 0 (runs in this process) or a number of local "
-                          "processes >= 1 (default: all cores)")
+                          "processes from 1 to 1024 (default: all cores)")
     return check_output(out_dir, "sweep", sources, flag=flag_out)
     return out
 
@@ -414,10 +420,14 @@ def connect(address: str):
         from distributed import Client
     except ImportError:
         raise SlamkitError("--scheduler needs dask.distributed: pip install 'slamkit[dask]'") from None
+    if not isinstance(address, str) or not address.strip():
+        raise ConfigError(f"--scheduler {address!r}: expected a dask scheduler address, tcp://HOST:PORT")
     try:
         return Client(address, timeout="10s")
     except (OSError, TimeoutError) as e:
         raise SlamkitError(f"cannot reach the dask scheduler at {address}: {e}") from None
+    except (ValueError, TypeError) as e:  # not an address (no port, unknown protocol, ...)
+        raise ConfigError(f"--scheduler {address!r}: not a dask scheduler address, tcp://HOST:PORT ({e})") from None
 
 
 # ------------------------------------------------------------------------------------------------ outputs

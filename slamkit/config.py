@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from .camera import parse_camera_values
-from .errors import ConfigError, check_type
+from .errors import ConfigError, check_fields, check_type
 from .features import MatchingConfig, available_extractors, available_matchers
 from .features.learned import EXTRACTORS as LEARNED_EXTRACTORS, MATCHER_FEATURES, MATCHERS as LEARNED_MATCHERS
 from .features.learned import PIPELINES as LEARNED_PIPELINES, unavailable_reason
@@ -87,6 +87,10 @@ class SlamConfig:
 
     def validate(self) -> "SlamConfig":
         _check_field_types(self, "SlamConfig")
+        if not 50 <= self.num_features <= MAX_FEATURES:
+            raise ConfigError(f"num_features must be between 50 and {MAX_FEATURES} (got {self.num_features}; "
+                              "the extractors take a C int, and more keypoints than pixels are never found)")
+        check_fields(self, "", RANGES, nested=False)  # the stage configs: their validate() below
         if self.features not in available_extractors():
             if self.features in FEATURE_PIPELINES:
                 raise ConfigError(f"features: {self.features!r} is a feature pipeline (extractor + matcher), not an "
@@ -100,17 +104,8 @@ class SlamConfig:
         if MATCHER_FEATURES.get(self.matcher, self.features) != self.features:
             raise ConfigError(f"matcher {self.matcher!r} matches only {MATCHER_FEATURES[self.matcher]!r} features, "
                               f"not {self.features!r} (use features={MATCHER_FEATURES[self.matcher]!r}, or matcher='nn')")
-        if not 50 <= self.num_features <= MAX_FEATURES:
-            raise ConfigError(f"num_features must be between 50 and {MAX_FEATURES} (got {self.num_features}; "
-                              "the extractors take a C int, and more keypoints than pixels are never found)")
-        if self.frame_skip < 1:
-            raise ConfigError(f"frame_skip must be >= 1 (got {self.frame_skip})")
-        if self.max_frames is not None and self.max_frames < 1:
-            raise ConfigError(f"max_frames must be >= 1 or None (got {self.max_frames})")
         if self.camera and self.camera != "auto" and not is_camera_path(self.camera):
             parse_camera_values(self.camera, "camera")
-        if self.max_lost_frames < 1:
-            raise ConfigError(f"max_lost_frames must be >= 1 (got {self.max_lost_frames})")
         for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.local_mapping, self.ba,
                       self.loop_closing, self.self_calibration):
             stage.validate()
@@ -275,6 +270,17 @@ MAX_FEATURES = 1_000_000
 """The most keypoints per frame ``num_features`` may ask for (OpenCV takes a C int; a 1-megapixel image has
 fewer good corners than this)."""
 
+RANGES: dict[str, str | tuple[str, str]] = {
+    "num_features": (f"[50, {MAX_FEATURES}]", "more keypoints than pixels are never found"),
+    "frame_skip": "[1, inf)", "max_frames": ("[1, inf)", "or None: all"), "relocalization_candidates": "[0, inf)",
+    "max_lost_frames": "[1, inf)",
+    "thumbnail_width": ("[0, 2048]", "0: none; every keyframe keeps one in memory"),
+    "seed": ("[0, inf)", "any non-negative integer"),
+}
+"""The interval of each number of :class:`SlamConfig` itself (``slamkit.errors.check_fields``: every number is
+also finite, and an integer other than a seed at most ``2**31 - 1``); the stage configs' ranges are in their
+``validate()``."""
+
 
 def _check_field_types(obj: Any, prefix: str) -> None:
     """ArgumentTypeError naming ``prefix.field`` for a field whose value is not of its default's type (a
@@ -311,12 +317,24 @@ def _set(obj: Any, path: list[str], value: Any, key: str) -> Any:
         return replace(obj, **{path[0]: _set(current, path[1:], value, key)})
     if value is None or (isinstance(value, str) and value in ("", "none", "None")):
         if "None" in str(names[path[0]].type):  # optional parameter (max_frames, weights_dir, ...)
-            return replace(obj, **{path[0]: None})
-    return replace(obj, **{path[0]: _coerce(current, value, key)})
+            return _replace(obj, path[0], None, key)
+    return _replace(obj, path[0], _coerce(current, value, key, str(names[path[0]].type)), key)
 
 
-def _coerce(current: Any, value: Any, key: str) -> Any:
-    """Convert ``value`` to the type of the current value (strings from the CLI, numpy scalars, ...)."""
+def _replace(obj: Any, name: str, value: Any, key: str) -> Any:
+    """``replace(obj, name=value)``; a ConfigError of the config's own checks (a ``__post_init__``, which names
+    its class's field) is prefixed with the parameter as given (``loop_closing.verification.max_trials``)."""
+    try:
+        return replace(obj, **{name: value})
+    except ConfigError as e:
+        if key in str(e):
+            raise
+        raise ConfigError(f"{key}: {e}") from None
+
+
+def _coerce(current: Any, value: Any, key: str, kind: str = "") -> Any:
+    """Convert ``value`` to the type of the current value (strings from the CLI, numpy scalars, ...); an
+    optional field whose value is None to the type its annotation ``kind`` names."""
     if dataclasses.is_dataclass(current):
         if isinstance(value, dict):
             return _from_dict(type(current), value)
@@ -329,6 +347,8 @@ def _coerce(current: Any, value: Any, key: str) -> Any:
                 if value.lower() in ("0", "false", "no", "off"):
                     return False
                 raise ValueError(value)
+            if isinstance(value, numbers.Number) and value not in (0, 1):  # 2, -1, NaN: not a truth value
+                raise ValueError(value)
             return bool(value)
         if isinstance(current, int):
             if isinstance(value, float) and not value.is_integer():
@@ -336,15 +356,22 @@ def _coerce(current: Any, value: Any, key: str) -> Any:
             return int(value)
         if isinstance(current, float):
             return float(value)
-        if current is None:  # optional int (max_frames)
-            return None if value in (None, "", "none", "None") else int(value)
+        if current is None:  # optional number (max_frames, max_error)
+            if isinstance(value, str) and value in ("", "none", "None"):
+                return None
+            if value is None or kind.startswith("float"):
+                return None if value is None else float(value)
+            return _coerce(0, value, key)
         if isinstance(current, str):
             return str(value)
-        if isinstance(current, tuple):
-            return tuple(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"configuration parameter {key!r}: {value!r} is not a valid "
-                          f"{type(current).__name__}") from None
+        if isinstance(current, tuple):  # numbers (scale_range): a sequence, or text "0.2,5" / "(0.2, 5)"
+            items = value.strip("()[] ").split(",") if isinstance(value, str) else list(value)
+            if len(items) != len(current):
+                raise ValueError(value)
+            return tuple(_coerce(c, v, key) for c, v in zip(current, items))
+    except (TypeError, ValueError, OverflowError):
+        wanted = type(current).__name__ if current is not None else kind.split()[0] or "value"
+        raise ConfigError(f"configuration parameter {key!r}: {value!r} is not a valid {wanted}") from None
     return value
 
 
@@ -360,7 +387,7 @@ def _from_dict(cls, d: dict) -> Any:
         if dataclasses.is_dataclass(cur) and isinstance(v, dict):
             kwargs[k] = _from_dict(type(cur), v)
         else:
-            kwargs[k] = _coerce(cur, v, k)
+            kwargs[k] = _coerce(cur, v, k, str(names[k].type))
     return cls(**kwargs)
 
 

@@ -20,7 +20,7 @@ from typing import Collection, Mapping, Sequence
 import numpy as np
 import pycolmap
 
-from .errors import ConfigError
+from .errors import ConfigError, native_seed
 from .features import MatchingConfig, match_descriptors
 from .pose_graph import sim3_from_pycolmap
 
@@ -133,8 +133,8 @@ def verify_loop(query_points: np.ndarray, candidate_points: np.ndarray,
     if max_error is None:
         spread = float(np.median(np.linalg.norm(tgt - np.median(tgt, axis=0), axis=1)))
         max_error = cfg.relative_error * spread if spread > 0 else 1e-9
-    options = pycolmap.RANSACOptions(max_error=max_error, random_seed=cfg.random_seed, max_num_trials=cfg.max_trials,
-                                     min_num_trials=min(1000, cfg.max_trials))
+    options = pycolmap.RANSACOptions(max_error=max_error, random_seed=native_seed(cfg.random_seed),
+                                     max_num_trials=cfg.max_trials, min_num_trials=min(1000, cfg.max_trials))
     found = pycolmap.estimate_sim3d_robust(src, tgt, options)
     if found is None:
         return LoopVerification(LoopStatus.NO_MODEL, n, max_error=max_error)

@@ -60,6 +60,10 @@ class MatchingConfig:
     max_l2: float = 0.9
     """Largest L2 distance accepted for unit-normalised float descriptors."""
 
+    RANGES = {"ratio": ("(0, 1]", "1 disables the ratio test"), "max_hamming": ("[0, 256]", "of 256 bits"),
+              "max_l2": ("(0, 10]", "unit-normalised descriptors are at most 2 apart")}
+    """Range of each field, checked with the config that holds this one (``slamkit.errors.check_fields``)."""
+
 
 _REGISTRY: dict[str, Callable[..., Extractor]] = {}
 _MATCHERS: dict[str, Callable[..., "PairMatcher"]] = {}

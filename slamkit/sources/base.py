@@ -20,15 +20,15 @@ import cv2
 import numpy as np
 
 from ..camera import Intrinsics
-from ..errors import ConfigError, ImageReadError, SourceError, shown
+from ..errors import C_INT_MAX, ConfigError, ImageReadError, SourceError, shown
 from ..types import Frame, Trajectory
 
 
 def check_skip_and_max(frame_skip: int, max_frames: int | None) -> None:
-    if int(frame_skip) < 1:
-        raise ConfigError(f"frame_skip must be >= 1 (got {frame_skip})")
-    if max_frames is not None and int(max_frames) < 1:
-        raise ConfigError(f"max_frames must be >= 1 or None (got {max_frames})")
+    if not 1 <= int(frame_skip) <= C_INT_MAX:
+        raise ConfigError(f"frame_skip must be >= 1 and <= {C_INT_MAX} (got {frame_skip})")
+    if max_frames is not None and not 1 <= int(max_frames) <= C_INT_MAX:
+        raise ConfigError(f"max_frames must be >= 1 and <= {C_INT_MAX}, or None (got {max_frames})")
 
 
 def select(n: int, frame_skip: int = 1, max_frames: int | None = None, start: int = 0) -> np.ndarray:

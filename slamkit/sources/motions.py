@@ -21,9 +21,13 @@ DEFAULT_FRAMES = 360
 """Frames of the default sequence (and default length of :func:`default_motion`)."""
 
 
+MAX_FRAMES = 100_000
+"""The most frames a rendered motion may have (checked before its poses are allocated; an hour at 30 fps)."""
+
+
 def _check_frames(n: int) -> int:
-    if int(n) != n or n < 2:
-        raise ConfigError(f"frames must be an integer >= 2 (got {n})")
+    if not (math.isfinite(n) and int(n) == n and 2 <= n <= MAX_FRAMES):
+        raise ConfigError(f"frames must be an integer >= 2 and <= {MAX_FRAMES} (got {n:g})")
     return int(n)
 
 

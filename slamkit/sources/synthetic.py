@@ -24,7 +24,7 @@ and ``corridor-walk`` (a straight walk down a corridor whose walls repeat one ti
 without any revisit; :mod:`slamkit.sources.corridor`) and ``block-loop`` (driving ``laps`` times round a
 city block, a 250 m loop: :mod:`slamkit.sources.block`). Parameters of every motion:
 
-    frames=N     number of frames (>= 2; each motion has its own default)
+    frames=N     number of frames (2 to 100,000; each motion has its own default)
     seed=S       integer seed of random motions and of the image noise (default 0)
     fps=F        frame rate; timestamps are ``index / fps`` seconds (default 30)
     noise=SIGMA  Gaussian image noise in grey levels (default 0: noise-free)
@@ -45,11 +45,14 @@ World frame: z up, metres, floor at z = 0; poses are camera-to-world with OpenCV
 The default sequence is cached in ``$SLAMKIT_CACHE/default-v2/`` (or ``$XDG_CACHE_HOME/slamkit/...``,
 else ``~/.cache/slamkit/...``) in TUM RGB-D layout (``rgb/*.jpg``, ``rgb.txt``, ``groundtruth.txt``)
 plus ``camera.json``; it is written atomically (rendered into a temporary sibling, then renamed), and the
-folder name carries a version that changes whenever the renderer or the scene changes.
+folder name carries a version that changes whenever the renderer or the scene changes. Its ``meta.json``
+lists every file's size and SHA-256; each open checks them (:func:`cache_problem`, about 0.1 s), and a cache
+that does not match is rendered again with a one-line note.
 """
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 import json
 import logging
@@ -73,8 +76,8 @@ from .base import FrameSource, ImageListSource, select
 from .block import block_loop, block_scene
 from .corridor import corridor_scene, corridor_walk
 from .folder import image_size, resolve_camera
-from .motions import (DEFAULT_FRAMES, MOTIONS, _check_positive, default_motion, forward, handheld,  # noqa: F401
-                      loop, orbit, rotation, sideways, translate_then_rotate)
+from .motions import (DEFAULT_FRAMES, MAX_FRAMES, MOTIONS, _check_positive, default_motion, forward,  # noqa: F401
+                      handheld, loop, orbit, rotation, sideways, translate_then_rotate)
 from .scene import Rendering, Scene, default_room, project
 from .street import street_drive, street_scene
 
@@ -320,12 +323,16 @@ def parse_spec(spec: str) -> tuple[str, dict[str, float | int]]:
             number = float(value)
         except ValueError:
             raise ConfigError(f"{spec!r}: parameter {key}={value!r} is not a number") from None
-        if key in ("frames", "seed", "wide"):
+        if not math.isfinite(number):
+            raise ConfigError(f"{spec!r}: parameter {key}={value!r} must be a finite number")
+        if key in ("frames", "seed", "wide", "laps"):
             if not number.is_integer():
                 raise ConfigError(f"{spec!r}: parameter {key}={value!r} must be an integer")
-            number = int(number)
+            number = int(value) if value.lstrip("+").isdigit() else int(number)  # a seed of any size, exactly
         if key == "seed" and number < 0:
-            raise ConfigError(f"{spec!r}: parameter seed={value!r} must be >= 0")
+            raise ConfigError(f"{spec!r}: parameter seed={value!r} must be >= 0 (any non-negative integer)")
+        if key == "frames" and not 2 <= number <= MAX_FRAMES:
+            raise ConfigError(f"{spec!r}: frames must be an integer >= 2 and <= {MAX_FRAMES} (got {value})")
         params[key] = number
     return motion, params
 
@@ -418,34 +425,105 @@ def default_source() -> SyntheticSource:
                            seed=0, noise=DEFAULT_NOISE, name="default")
 
 
-def _cache_complete(folder: Path) -> bool:
-    return all((folder / f).is_file() for f in ("rgb.txt", "groundtruth.txt", "camera.json"))
+def _checksums(folder: Path) -> dict[str, list]:
+    """``{relative path: [size in bytes, sha256]}`` of every file under ``folder`` but ``meta.json``."""
+    out = {}
+    for path in sorted(folder.rglob("*")):
+        if path.is_file() and path.name != "meta.json":
+            out[path.relative_to(folder).as_posix()] = [path.stat().st_size, _sha256(path)]
+    return out
+
+
+def _sha256(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def _default_meta() -> dict:
+    return dict(version=DEFAULT_VERSION, frames=DEFAULT_FRAMES, fps=DEFAULT_FPS, noise=DEFAULT_NOISE,
+                jpeg_quality=DEFAULT_JPEG_QUALITY)
+
+
+def cache_problem(folder: str | Path, meta: dict | None = None, camera: Intrinsics = DEFAULT_CAMERA) -> str:
+    """Why the cached sequence in ``folder`` cannot be used ("" when it can): missing, written with other
+    settings than ``meta`` (default: the default sequence's version, frame count, ...) or another ``camera``, or
+    a file missing, of another size or not matching the SHA-256 that its ``meta.json`` lists (written with the
+    files, checked at every open: about 0.1 s for the default sequence's 37 MB)."""
+    folder, expected = Path(folder), _default_meta() if meta is None else meta
+    try:
+        written = json.loads((folder / "meta.json").read_text())
+        files = written["files"]
+        cam = Intrinsics.from_dict(json.loads((folder / "camera.json").read_text()))
+    except FileNotFoundError as e:
+        return f"{Path(e.filename).name} is missing" if folder.is_dir() else "it does not exist"
+    except KeyError:
+        return "its meta.json lists no checksums (an older slamkit wrote it)"
+    except (OSError, ValueError, TypeError, CalibrationError) as e:
+        return f"its meta.json or camera.json is unreadable ({type(e).__name__}: {e})"
+    changed = [k for k, v in expected.items() if written.get(k) != v]
+    if changed:
+        return "it was written with other settings (" + ", ".join(f"{k}={written.get(k)!r}" for k in changed) + ")"
+    if cam != camera:
+        return f"its camera.json is not the sequence's camera ({cam.width}x{cam.height}, fx={cam.fx:g})"
+    images = [name for name in files if name.startswith("rgb/")]
+    if len(images) != expected.get("frames", len(images)) or not {"rgb.txt", "camera.json"} <= set(files):
+        return f"its checksums list {len(images)} images, not {expected.get('frames')} (and rgb.txt, camera.json)"
+    for name, (size, digest) in files.items():
+        path = folder / name
+        try:
+            actual = path.stat().st_size
+            if actual != size:
+                return f"{name} has {actual} bytes, not {size}"
+            if _sha256(path) != digest:
+                return f"{name} does not match its checksum"
+        except OSError as e:
+            return f"{name} cannot be read ({e.strerror or e})"
+    return ""
 
 
 def ensure_default_sequence() -> Path:
-    """Render the default sequence into its cache folder unless it is already there; returns the folder.
+    """Render the default sequence into its cache folder unless it is already there; returns the folder
+    (:func:`ensure_cached_sequence`)."""
+    return ensure_cached_sequence(default_sequence_dir(), default_source, _default_meta(), DEFAULT_CAMERA,
+                                  "the default sequence")
+
+
+def ensure_cached_sequence(folder: str | Path, make_source: Callable[[], SyntheticSource], meta: dict,
+                           camera: Intrinsics, what: str = "the sequence") -> Path:
+    """Render ``make_source()`` (whose camera is ``camera``) into ``folder`` as JPEGs in TUM layout
+    (:func:`write_tum_sequence`) with a ``meta.json`` of ``meta`` and every file's size and SHA-256, unless the
+    folder is there and matches them (:func:`cache_problem`); one that does not is rendered again, with a
+    one-line note (a warning of this module's logger). Returns the folder.
 
     The frames are rendered into a temporary sibling folder that is renamed into place when complete, so a
     crash never leaves a partial cache and concurrent first uses are safe (the first rename wins).
     """
-    folder = default_sequence_dir()
-    if _cache_complete(folder):
+    folder = Path(folder)
+    problem = cache_problem(folder, meta, camera)
+    if not problem:
         return folder
+    if folder.exists():
+        log.warning("slamkit: note: the cache of %s in %s is not usable (%s): rendering it again", what, folder,
+                    problem)
     root = folder.parent
     try:
         root.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", suffix=".tmp", dir=root))
     except OSError as e:
-        raise SourceError(f"cannot create the cache folder {root} for the default sequence ({e}); "
+        raise SourceError(f"cannot create the cache folder {root} for {what} ({e}); "
                           "set SLAMKIT_CACHE to a writable folder") from e
     try:
-        log.info("rendering the default sequence (%d frames) into %s (once)", DEFAULT_FRAMES, folder)
+        source = make_source()
+        log.info("rendering %s (%d frames) into %s (once)", what, len(source), folder)
         t0 = time.perf_counter()
-        write_tum_sequence(default_source(), tmp, image_format="jpg", jpeg_quality=DEFAULT_JPEG_QUALITY)
-        meta = dict(version=DEFAULT_VERSION, frames=DEFAULT_FRAMES, fps=DEFAULT_FPS, noise=DEFAULT_NOISE,
-                    jpeg_quality=DEFAULT_JPEG_QUALITY, render_seconds=round(time.perf_counter() - t0, 2))
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
-        if folder.exists():  # incomplete leftover (files deleted by hand): move it aside
+        write_tum_sequence(source, tmp, image_format="jpg", jpeg_quality=int(meta.get("jpeg_quality",
+                                                                                        DEFAULT_JPEG_QUALITY)))
+        written = dict(meta, render_seconds=round(time.perf_counter() - t0, 2), files=_checksums(tmp))
+        (tmp / "meta.json").write_text(json.dumps(written, indent=1) + "\n")
+        done = lambda: not cache_problem(folder, meta, camera)  # noqa: E731
+        if done():  # a concurrent first use finished meanwhile: use its folder
+            return folder
+        if folder.exists():  # unusable leftover (files deleted or changed by hand, an older cache): move it aside
             stale = Path(tempfile.mkdtemp(prefix=f".{folder.name}.stale.", dir=root))
             os.replace(folder, stale / folder.name)
             shutil.rmtree(stale, ignore_errors=True)
@@ -455,9 +533,9 @@ def ensure_default_sequence() -> Path:
         try:
             os.rename(tmp, folder)
         except OSError:
-            if not _cache_complete(folder):  # not a concurrent writer that won the race
+            if not done():  # not a concurrent writer that won the race
                 raise
-        log.info("default sequence rendered in %.1f s", time.perf_counter() - t0)
+        log.info("%s rendered in %.1f s", what, time.perf_counter() - t0)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return folder
@@ -511,7 +589,8 @@ def open_default(*, frame_skip: int = 1, max_frames: int | None = None) -> Image
 
 __all__ = [
     "DEFAULT_CAMERA", "DEFAULT_VERSION", "MOTIONS", "SCENE_MOTIONS", "SyntheticSource", "WIDE_CAMERA", "cache_root",
-    "default_motion", "default_sequence_dir", "default_source", "ensure_default_sequence", "forward", "handheld",
+    "cache_problem", "default_motion", "default_sequence_dir", "default_source", "ensure_cached_sequence",
+    "ensure_default_sequence", "forward", "handheld",
     "loop", "open_default", "open_synthetic", "open_tum_sequence", "orbit", "parse_spec", "rotation", "sideways",
     "synthetic_source", "translate_then_rotate", "write_tum_sequence",
 ]

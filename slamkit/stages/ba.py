@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields
 from ..map import BA_LOSSES as _LOSSES, CAMERA_ID, SlamMap, bundle_adjustment_options, keypoint_scales
 
 
@@ -71,20 +71,15 @@ class BundleAdjustmentConfig:
     moved from docstrings"). -1 is faster on a multi-core machine when determinism does not matter."""
 
     def validate(self) -> None:
-        if self.local_window < 1:
-            raise ConfigError(f"ba.local_window must be >= 1 (got {self.local_window})")
-        if self.local_max_track_length < 0:
-            raise ConfigError(f"ba.local_max_track_length must be >= 0 (got {self.local_max_track_length})")
-        if self.global_growth <= 0:
-            raise ConfigError(f"ba.global_growth must be > 0 (got {self.global_growth})")
-        if self.max_reproj_error_px <= 0:
-            raise ConfigError(f"ba.max_reproj_error_px must be > 0 (got {self.max_reproj_error_px})")
-        if not 0 <= self.function_tolerance < 1:
-            raise ConfigError(f"ba.function_tolerance must be in [0, 1) (got {self.function_tolerance})")
-        if not (np.isfinite(self.outlier_chi2) and self.outlier_chi2 >= 0):
-            raise ConfigError(f"ba.outlier_chi2 must be >= 0 (got {self.outlier_chi2})")
-        if not 1 <= self.local_passes <= 5:
-            raise ConfigError(f"ba.local_passes must be 1 to 5 (got {self.local_passes})")
+        check_fields(self, "ba", {
+            "local_window": "[1, inf)", "local_iterations": "[1, inf)", "local_max_track_length": "[0, inf)",
+            "global_growth": "(0, 100]", "global_min_keyframes": "[0, inf)", "global_max_keyframes": "[0, inf)",
+            "global_iterations": "[1, inf)", "max_reproj_error_px": "(0, 1e9]", "min_tri_angle_deg": "[0, 45)",
+            "outlier_chi2": ("[0, 1e9]", "0: COLMAP's flat max_reproj_error_px"), "local_passes": "[1, 5]",
+            "function_tolerance": "[0, 1)",
+            "num_threads": ("[-1, 1024]", "-1: all cores, else 1 to 1024 threads")})
+        if self.num_threads == 0:
+            raise ConfigError("ba.num_threads must be -1 (all cores) or a number of threads >= 1 (got 0)")
         if self.loss not in _LOSSES:
             raise ConfigError(f"ba.loss must be one of {sorted(_LOSSES)} (got {self.loss!r})")
 

@@ -21,7 +21,7 @@ import numpy as np
 import pycolmap
 
 from ..camera import Intrinsics
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields, native_seed
 from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, bundle_adjustment_options, pycolmap_camera
@@ -96,26 +96,17 @@ class InitializerConfig:
     def validate(self) -> None:
         if self.strategy not in STRATEGIES:
             raise ConfigError(f"initializer.strategy must be one of {STRATEGIES} (got {self.strategy!r})")
-        if self.init_frames < 2:
-            raise ConfigError(f"initializer.init_frames must be >= 2 (got {self.init_frames})")
-        if self.min_matches < 8:
-            raise ConfigError(f"initializer.min_matches must be >= 8 (got {self.min_matches})")
-        if not 0 <= self.window_overlap < 1:
-            raise ConfigError(f"initializer.window_overlap must be in [0, 1) (got {self.window_overlap})")
-        if self.verify_frames < 0 or not 0 <= self.min_verify_ratio <= 1 or self.min_verify_inliers < 4:
-            raise ConfigError("initializer: verify_frames >= 0, min_verify_ratio in [0, 1] and min_verify_inliers "
-                              f">= 4 needed (got {self.verify_frames}, {self.min_verify_ratio}, "
-                              f"{self.min_verify_inliers})")
-        if not 0 < self.min_inlier_ratio <= 1:
-            raise ConfigError(f"initializer.min_inlier_ratio must be in (0, 1] (got {self.min_inlier_ratio})")
-        if self.max_pose_disagreement_deg <= 0:
-            raise ConfigError("initializer.max_pose_disagreement_deg must be > 0 "
-                              f"(got {self.max_pose_disagreement_deg})")
-        if not 8 <= self.min_points_at_end <= self.min_points:
+        check_fields(self, "initializer", {
+            "init_frames": "[2, inf)", "window_overlap": "[0, 1)", "verify_frames": "[0, inf)",
+            "min_verify_ratio": "[0, 1]", "min_verify_inliers": "[4, inf)", "min_matches": "[8, inf)",
+            "min_tri_angle_deg": "[0, 45)", "min_inlier_ratio": "(0, 1]", "min_points": "[8, inf)",
+            "min_points_at_end": "[8, inf)", "max_pair_trials": "[1, inf)", "max_error_px": "(0, 1e9]",
+            "max_pose_disagreement_deg": "(0, 180]", "max_reproj_error_px": "(0, 1e9]",
+            "min_track_angle_deg": "[0, 45)", "window_features": ("[0, inf)", "0: all"), "max_history": "[0, inf)",
+            "random_seed": "[0, inf)"})
+        if self.min_points_at_end > self.min_points:
             raise ConfigError("initializer.min_points_at_end must be in [8, min_points] "
                               f"(got {self.min_points_at_end})")
-        if self.min_tri_angle_deg < 0:
-            raise ConfigError(f"initializer.min_tri_angle_deg must be >= 0 (got {self.min_tri_angle_deg})")
 
 
 @dataclass(frozen=True, eq=False)
@@ -165,16 +156,16 @@ class Initializer:
         opts = pycolmap.TwoViewGeometryOptions()
         opts.compute_relative_pose = True
         opts.ransac.max_error = config.max_error_px
-        opts.ransac.random_seed = config.random_seed
+        opts.ransac.random_seed = native_seed(config.random_seed)
         opts.min_num_inliers = config.min_matches
         self._tvg_options = opts
         essential = pycolmap.RANSACOptions()
         essential.max_error = config.max_error_px
-        essential.random_seed = config.random_seed
+        essential.random_seed = native_seed(config.random_seed)
         self._essential_ransac = essential
         pnp = pycolmap.AbsolutePoseEstimationOptions()
         pnp.ransac.max_error = 4 * config.max_error_px
-        pnp.ransac.random_seed = config.random_seed
+        pnp.ransac.random_seed = native_seed(config.random_seed)
         self._pnp_options = pnp
 
     def set_camera(self, camera: Intrinsics) -> None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields
 from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 
 
@@ -54,22 +54,11 @@ class KeyframeConfig:
     (benchmarks/HISTORY.md, "Measurements moved from docstrings")."""
 
     def validate(self) -> None:
-        if not self.flow_threshold >= 0:
-            raise ConfigError(f"keyframes.flow_threshold must be >= 0 (got {self.flow_threshold})")
-        if self.min_tracked_matches < 1:
-            raise ConfigError(f"keyframes.min_tracked_matches must be >= 1 (got {self.min_tracked_matches})")
-        if not 0 <= self.weak_tracking_ratio < 1:
-            raise ConfigError(f"keyframes.weak_tracking_ratio must be in [0, 1) (got {self.weak_tracking_ratio})")
-        if not 0 <= self.min_parallax_deg < 45:
-            raise ConfigError(f"keyframes.min_parallax_deg must be in [0, 45) degrees (got {self.min_parallax_deg})")
-        if not 0 <= self.cull_redundant <= 1:
-            raise ConfigError(f"keyframes.cull_redundant must be in [0, 1] (got {self.cull_redundant})")
-        if self.reference_min_observers < 1:
-            raise ConfigError(f"keyframes.reference_min_observers must be >= 1 (got {self.reference_min_observers})")
-        if self.cull_keep_recent < 0:
-            raise ConfigError(f"keyframes.cull_keep_recent must be >= 0 (got {self.cull_keep_recent})")
-        if self.cull_min_observers < 1:
-            raise ConfigError(f"keyframes.cull_min_observers must be >= 1 (got {self.cull_min_observers})")
+        check_fields(self, "keyframes", {
+            "flow_threshold": "[0, 100]", "min_tracked_matches": "[1, inf)", "weak_tracking_ratio": "[0, 1)",
+            "reference_min_observers": "[1, inf)", "min_weak_tracked_matches": "[0, inf)",
+            "min_parallax_deg": "[0, 45)", "cull_redundant": "[0, 1]", "cull_min_observers": "[1, inf)",
+            "cull_keep_recent": "[0, inf)"})
 
 
 @dataclass(frozen=True)

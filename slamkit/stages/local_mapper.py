@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pycolmap
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields
 from ..features import FrameFeatures, MatchingConfig, guided_match
 from ..features.epipolar import epipolar_match
 from ..map import SlamMap, keypoint_scales, rigid_from_matrix, shared_observations
@@ -94,26 +94,14 @@ class LocalMappingConfig:
     """Descriptor test of fusion (ORB-SLAM's Fuse: best candidate within 50 bits, no ratio test)."""
 
     def validate(self) -> None:
-        if self.neighbors < 1:
-            raise ConfigError(f"local_mapping.neighbors must be >= 1 (got {self.neighbors})")
-        if not 0 <= self.min_parallax_deg < 45:
-            raise ConfigError(f"local_mapping.min_parallax_deg must be in [0, 45) (got {self.min_parallax_deg})")
-        if self.starved_points > 0 and not 0 <= self.starved_parallax_deg <= self.min_parallax_deg:
+        check_fields(self, "local_mapping", {
+            "neighbors": "[1, inf)", "min_baseline_ratio": "[0, 100]", "min_parallax_deg": "[0, 45)",
+            "starved_points": "[0, inf)", "starved_parallax_deg": "[0, 45)", "epipolar_band_px": "[0, 1e9]",
+            "scale_ratio_factor": "[1, 1000]", "min_found_ratio": "[0, 1]", "min_observers": "[2, inf)",
+            "culling_keyframes": "[1, inf)", "fuse_radius_px": "[0, 1e9]"})
+        if self.starved_points > 0 and not self.starved_parallax_deg <= self.min_parallax_deg:
             raise ConfigError(f"local_mapping.starved_parallax_deg must be in [0, min_parallax_deg] (got "
                               f"{self.starved_parallax_deg})")
-        if self.starved_points < 0:
-            raise ConfigError(f"local_mapping.starved_points must be >= 0 (got {self.starved_points})")
-        if not 0 <= self.min_found_ratio <= 1:
-            raise ConfigError(f"local_mapping.min_found_ratio must be in [0, 1] (got {self.min_found_ratio})")
-        if self.min_observers < 2:
-            raise ConfigError(f"local_mapping.min_observers must be >= 2 (got {self.min_observers})")
-        if self.culling_keyframes < 1:
-            raise ConfigError(f"local_mapping.culling_keyframes must be >= 1 (got {self.culling_keyframes})")
-        for name in ("min_baseline_ratio", "epipolar_band_px", "fuse_radius_px"):
-            if not getattr(self, name) >= 0:
-                raise ConfigError(f"local_mapping.{name} must be >= 0 (got {getattr(self, name)})")
-        if self.scale_ratio_factor < 1:
-            raise ConfigError(f"local_mapping.scale_ratio_factor must be >= 1 (got {self.scale_ratio_factor})")
 
 
 @dataclass(frozen=True)

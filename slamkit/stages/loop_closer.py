@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields
 from ..loop_verification import ConsistentGroup, LoopVerificationConfig, update_consistent_groups, verify_loop_candidate
 from ..map import rigid_from_matrix
 from ..place_recognition import PlaceDatabase, default_vocabulary
@@ -42,6 +42,14 @@ from ..pose_graph import (PoseGraphConfig, correct_points, loop_edge, optimize_p
 if TYPE_CHECKING:  # pragma: no cover
     from ..map import SlamMap
     from ..state import Segment, SlamState
+
+
+VERIFICATION_RANGES = {
+    "min_matches": "[3, inf)", "min_inliers": "[3, inf)", "min_inlier_ratio": "[0, 1]", "max_error": "(0, 1e6]",
+    "relative_error": "(0, 10]", "scale_range": "(0, 1e6]", "random_seed": ("[-1, inf)", "-1: random"),
+    "max_trials": "[1, inf)"}
+"""Ranges of the :class:`LoopVerificationConfig` fields of ``verification`` and ``merge_verification`` (beyond
+what its own ``__post_init__`` checks): finite, and bounded where a value would make no sense."""
 
 
 @dataclass(frozen=True)
@@ -105,15 +113,14 @@ class LoopClosingConfig:
     hard-motion suite closes a loop (benchmarks/HISTORY.md, "Loop closure (issue 18)")."""
 
     def validate(self) -> None:
-        for name in ("query_candidates", "max_verifications", "loop_group", "min_inliers", "max_postings"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"loop_closing.{name} must be >= 1 (got {getattr(self, name)})")
-        if not self.max_correction > 0:
-            raise ConfigError(f"loop_closing.max_correction must be > 0 (got {self.max_correction})")
-        for name in ("min_consistency", "recent_keyframes", "min_keyframes", "merge_min_keyframes", "neighbour_weight",
-                     "covisibility_weight", "group_span", "candidate_neighbours"):
-            if getattr(self, name) < 0:
-                raise ConfigError(f"loop_closing.{name} must be >= 0 (got {getattr(self, name)})")
+        check_fields(self, "loop_closing", {
+            **{name: "[1, inf)" for name in ("query_candidates", "max_verifications", "loop_group", "min_inliers",
+                                             "max_postings")},
+            **{name: "[0, inf)" for name in ("min_consistency", "recent_keyframes", "min_keyframes",
+                                             "merge_min_keyframes", "neighbour_weight", "covisibility_weight",
+                                             "group_span", "candidate_neighbours")},
+            "max_correction": ("(0, 1e9]", "1e9: no limit"), "verification": VERIFICATION_RANGES,
+            "merge_verification": VERIFICATION_RANGES})
 
 
 @dataclass(frozen=True)

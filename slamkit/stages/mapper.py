@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..features.epipolar import epipolar_match
 from ..map import SlamMap, rigid_from_matrix
@@ -74,19 +74,13 @@ class MapperConfig:
     def validate(self) -> None:
         if self.method not in MAPPER_METHODS:
             raise ConfigError(f"mapper.method must be one of {', '.join(MAPPER_METHODS)} (got {self.method!r})")
-        if self.compact_dropped < 0:
-            raise ConfigError(f"mapper.compact_dropped must be >= 0 (got {self.compact_dropped})")
-        if self.neighbors < 1:
-            raise ConfigError(f"mapper.neighbors must be >= 1 (got {self.neighbors})")
-        if self.max_epipolar_error_px <= 0:
-            raise ConfigError(f"mapper.max_epipolar_error_px must be > 0 (got {self.max_epipolar_error_px})")
-        if self.min_keyframe_points < 0:
-            raise ConfigError(f"mapper.min_keyframe_points must be >= 0 (got {self.min_keyframe_points})")
-        if not 0 <= self.starved_tri_angle_deg <= self.min_tri_angle_deg < 45:
+        check_fields(self, "mapper", {
+            "neighbors": "[1, inf)", "max_epipolar_error_px": "(0, 1e9]", "min_keyframe_points": "[0, inf)",
+            "min_tri_angle_deg": "[0, 45)", "starved_points": "[0, inf)", "starved_tri_angle_deg": "[0, 45)",
+            "compact_dropped": ("[0, inf)", "0: never")})
+        if not self.starved_tri_angle_deg <= self.min_tri_angle_deg:
             raise ConfigError("mapper: 0 <= starved_tri_angle_deg <= min_tri_angle_deg < 45 degrees needed (got "
                               f"{self.starved_tri_angle_deg}, {self.min_tri_angle_deg})")
-        if self.starved_points < 0:
-            raise ConfigError(f"mapper.starved_points must be >= 0 (got {self.starved_points})")
 
 
 def sampson_error_px(x1: np.ndarray, x2: np.ndarray, cam2_from_cam1: np.ndarray, K: np.ndarray) -> np.ndarray:

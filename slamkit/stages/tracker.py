@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pycolmap
 
-from ..errors import ConfigError
+from ..errors import ConfigError, check_fields, native_seed
 from ..features import FrameFeatures, MatchingConfig, guided_match, match_descriptors
 from ..local_map import POINT_DESCRIPTORS, LocalMap
 from ..map import matrix_from_rigid, rigid_from_matrix
@@ -77,23 +77,15 @@ class TrackerConfig:
     """RANSAC seed (same input and seed give the same trajectory)."""
 
     def validate(self) -> None:
-        if self.max_error_px <= 0:
-            raise ConfigError(f"tracker.max_error_px must be > 0 (got {self.max_error_px})")
-        if self.min_inliers < 4:
-            raise ConfigError(f"tracker.min_inliers must be >= 4 (got {self.min_inliers})")
-        if min(self.search_radius_px, self.narrow_search_radius_px, self.refine_radius_px) <= 0:
-            raise ConfigError("tracker.search_radius_px, tracker.narrow_search_radius_px and "
-                              "tracker.refine_radius_px must be > 0")
-        if self.local_map_rounds < 1:
-            raise ConfigError(f"tracker.local_map_rounds must be >= 1 (got {self.local_map_rounds})")
+        check_fields(self, "tracker", {
+            "max_error_px": "(0, 1e9]", "min_inliers": "[4, inf)", "search_radius_px": "(0, 1e9]",
+            "narrow_search_radius_px": "(0, 1e9]", "refine_radius_px": "(0, 1e9]",
+            "prediction_min_inlier_ratio": ("(0, 100]", "> 1 turns the motion-model pose off"),
+            "local_map_rounds": "[1, inf)", "local_keyframes": "[0, inf)", "recheck_inlier_ratio": "[0, 1]",
+            "random_seed": "[0, inf)"})
         if self.point_descriptor not in POINT_DESCRIPTORS:
             raise ConfigError(f"tracker.point_descriptor must be one of {', '.join(POINT_DESCRIPTORS)} "
                               f"(got {self.point_descriptor!r})")
-        if not 0 <= self.recheck_inlier_ratio <= 1:
-            raise ConfigError(f"tracker.recheck_inlier_ratio must be in [0, 1] (got {self.recheck_inlier_ratio})")
-        if self.prediction_min_inlier_ratio <= 0:
-            raise ConfigError(f"tracker.prediction_min_inlier_ratio must be > 0 (got {self.prediction_min_inlier_ratio}; "
-                              "> 1 turns the motion-model pose off)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,7 +158,7 @@ class Tracker:
         est.ransac.max_error = config.max_error_px
         est.ransac.min_inlier_ratio = 0.1
         est.ransac.max_num_trials = 2000
-        est.ransac.random_seed = config.random_seed
+        est.ransac.random_seed = native_seed(config.random_seed)
         self._estimation = est
         ref = pycolmap.AbsolutePoseRefinementOptions()
         ref.refine_focal_length = False
