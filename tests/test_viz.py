@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import json
 import os
 import re
 import signal
@@ -528,6 +529,17 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert "showing the saved run" in app.w_status.value and "<" not in app.status_text
         page = app.export_html().read_text()
         assert "<title>slamkit map: " in page and "MeshCat</title>" not in page and "slamkit-caption" in page
+        # Save again: the map.html just exported into the run folder survives it (byte for byte), and a
+        # folder holding a file that is not a run's is refused with the reason, nothing deleted
+        first_id = json.loads((saved / ".slamkit-run").read_text())["id"]
+        assert app.save() == saved and (saved / "map.html").read_text() == page
+        assert json.loads((saved / ".slamkit-run").read_text())["id"] != first_id  # a new save, not a no-op
+        assert "kept map.html" in app.status_text and not list(saved.parent.glob(".out.kept-*"))
+        (saved / "notes.txt").write_text("mine")
+        app.b_save.click()
+        assert "not empty and is not a slamkit run" in app.status_text, app.status_text
+        assert (saved / "notes.txt").read_text() == "mine" and (saved / "map.html").read_text() == page
+        (saved / "notes.txt").unlink()
         # Export dataset: every posed frame of the main segment, its image beside the model
         ds = app.export_dataset("colmap")
         rec = pycolmap.Reconstruction(str(ds / "sparse" / "0"))

@@ -38,6 +38,7 @@ from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
 from .explain import camera_html, flow_help_html, scale_html
+from .kept_files import keeping_unsaved_files
 from .meshcat_view import MapView
 from .settings import ViewSettings
 
@@ -327,10 +328,15 @@ class SlamApp(AppWidgets):
             self._status("done: the last global bundle adjustment ran; Save writes the map and trajectory")
 
     def save(self, out_dir: str | Path | None = None) -> Path:
-        """Save the current map and trajectory (``slam.save``) to the output folder."""
+        """Save the current map and trajectory (``slam.save``) to the output folder. Files the last save did not
+        write there (an exported ``map.html``, ``slamkit eval``'s report) are kept (:mod:`.kept_files`); a
+        folder holding other files than a run's is refused, with the reason in the status line."""
         out = Path(out_dir or self.w_out.value)
-        path = self.slam.save(out)
-        self._status(f"saved to {path} (trajectory_tum.txt, sparse/, points.ply, summary.json, session/ to resume)")
+        with keeping_unsaved_files(out) as kept:  # an earlier Export HTML (map.html) survives the save
+            path = self.slam.save(out)
+        also = f"; kept {', '.join(kept)} from before this save" if kept else ""
+        self._status(f"saved to {path} (trajectory_tum.txt, sparse/, points.ply, summary.json, session/ to "
+                     f"resume){also}")
         return path
 
     def load(self, run_dir: str | Path | None = None) -> None:
