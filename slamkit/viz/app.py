@@ -41,6 +41,7 @@ from .explain import camera_html, flow_help_html, scale_html
 from .kept_files import keeping_unsaved_files
 from .meshcat_view import MapView
 from .settings import ViewSettings
+from .static_twin import StaticTwin
 
 DEFAULT_SOURCE = "default"
 """The embedded synthetic sequence (exact ground truth)."""
@@ -74,6 +75,9 @@ class SlamApp(AppWidgets):
         """The keyframe pair of "Draw matches" follows the latest two keyframes (until the user picks one)."""
         self.last_error: str | None = None
         """The traceback of the last error shown in the status line."""
+        self.twin = StaticTwin(self, min_interval=5.0)
+        """The plain outputs under the widgets (a picture and the status text) that a saved notebook keeps."""
+        self._hooked = None
         self._build_widgets(self.slam.config, self.source_spec, len(self.slam.source), out_dir, self.view.settings,
                             self.view.iframe_html(self.map_height))
         self._connect()
@@ -109,7 +113,8 @@ class SlamApp(AppWidgets):
             w.observe(lambda _: self._guard(self._apply_view_settings), "value")
 
     def _guard(self, fn, *args):
-        """Run a widget action; show errors in the status line instead of losing them in the kernel log."""
+        """Run a widget action; show errors in the status line instead of losing them in the kernel log;
+        then redraw the static twin if the action changed the app (a button press runs outside any cell)."""
         try:
             return fn(*args)
         except SlamkitError as e:
@@ -117,9 +122,30 @@ class SlamApp(AppWidgets):
         except Exception as e:  # noqa: BLE001 - shown to the user, with the traceback in the status tooltip
             self._status(f"⚠ {type(e).__name__}: {e}", "#b00020")
             self.last_error = traceback.format_exc()
+        finally:
+            if not self._running:
+                self.twin.refresh(force=True)
+
+    def _ipython_display_(self) -> None:
+        """The widgets, then their static twin (a picture and the status text: plain outputs a saved,
+        autosaved or exported notebook shows without widget state), redrawn after every cell that changed
+        the app, every button press and every few seconds of a background run."""
+        from IPython import get_ipython
+        from IPython.display import display
+
+        bundle = self.widget._repr_mimebundle_()
+        bundle["text/plain"] = ("slamkit app (its controls need the running kernel; the picture and status "
+                                "below are their static copy)")
+        display(bundle, raw=True)
+        self.twin.show()
+        ip = get_ipython()
+        if ip is not None and self._hooked is None:
+            self._hooked = lambda *_: self.twin.refresh(force=True)
+            ip.events.register("post_run_cell", self._hooked)
 
     def _status(self, text: str, color: str = "#333") -> None:
         self.status_text = text
+        self.twin.dirty = True
         self.w_status.value = f'<span style="color:{color}">{html.escape(text)}</span>'
 
     status_text: str = ""
@@ -254,6 +280,7 @@ class SlamApp(AppWidgets):
         try:
             while self._running and not self.slam.done:
                 self.step()
+                self.twin.refresh()  # at most every few seconds
                 await asyncio.sleep(0)  # the kernel handles widget messages (Pause, sliders) between frames
         except KeyboardInterrupt:  # "interrupt kernel": Slam.step finishes the frame first, so the state is whole
             self._status(f"⏸ interrupted after frame {len(self.slam.records) - 1}: the map so far is intact; Save "
@@ -266,6 +293,7 @@ class SlamApp(AppWidgets):
             self._running = False
             self._set_run_button()
             self._show_pending()
+            self.twin.refresh(force=True)
 
     def _set_run_button(self) -> None:
         if self._running:
@@ -378,6 +406,13 @@ class SlamApp(AppWidgets):
     def close(self) -> None:
         """Stop a background run and the viewer's server (when this app started it)."""
         self.pause()
+        if self._hooked is not None:
+            from IPython import get_ipython
+
+            ip = get_ipython()
+            if ip is not None:
+                ip.events.unregister("post_run_cell", self._hooked)
+            self._hooked = None
         if self._own_view:
             self.view.close()
         self._close_widgets()
@@ -406,11 +441,13 @@ class SlamApp(AppWidgets):
         self._refresh_frames(result)
         self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
         self._show_pending()
+        self.twin.dirty = True
         if not self._running and not self.slam.done:
             self._status(f"stepped to frame {result.frame_index}: {result.status}"
                          + (" (keyframe)" if result.is_keyframe else ""))
 
     def _refresh_all(self) -> None:
+        self.twin.dirty = True
         self._refresh_view_controls()
         self._refresh_frames(self.slam.last_result)
         self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())

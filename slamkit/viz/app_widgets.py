@@ -88,7 +88,7 @@ class AppWidgets:
         self.w_source = W.Text(value=source_spec, description="data source", style=style, layout=wide,
                                placeholder="default, or a dataset folder / video path", continuous_update=False)
         self.w_default = W.Button(description="default sequence", tooltip="the embedded synthetic sequence",
-                                  layout=W.Layout(width="140px"))
+                                  layout=W.Layout(width="160px"))
         self.w_skip = W.IntSlider(value=vals["frame_skip"], min=1, max=10, description="frame skip", style=style,
                                   layout=wide, continuous_update=False)
         self.w_max = W.IntSlider(value=vals["max_frames"], min=1, max=max(1, math.ceil(source_len / cfg.frame_skip)),
@@ -153,10 +153,10 @@ class AppWidgets:
                                   layout=vl, tooltip="the map points seen by most images, longest track first")
         self.v_track_info = W.HTML()
         self.v_clip_on = W.Checkbox(value=False, description="clip to keyframes", indent=False,
-                                    layout=W.Layout(width="140px"))
+                                    layout=W.Layout(width="160px"))
         self.v_clip = W.IntRangeSlider(value=(0, 1), min=0, max=1, description="", layout=W.Layout(width="300px"),
                                        continuous_update=False)
-        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="130px"),
+        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="150px"),
                                  tooltip="frame the whole map again")
         self.v_units = W.HTML()
         self.v_legend = W.HTML(legend_html())
