@@ -271,6 +271,67 @@ def _check_saved_without_kernel(browser, page, lab, saved: Path, final: dict) ->
     print("reopened in JupyterLab, frozen maps:", scenes)
 
 
+TWIN_JS = """() => Array.from(document.querySelectorAll('.jp-OutputArea-output img, .output_png img, img'))
+    .filter(i => i.src.startsWith('data:image/png') && i.naturalWidth > 0).map(i => [i.naturalWidth, i.naturalHeight])"""
+"""Width and height of every PNG image shown (the app's static twin among them)."""
+
+
+def _check_autosave_cycle(browser, page, lab, saved: Path, final: dict) -> None:
+    """What JupyterLab's autosave does to a notebook reopened without a kernel: it writes it again without
+    the widget state. Saved that way and reopened once more (and converted offline with nbconvert), the
+    app's static twin — a picture of the map and the frame panel, and the status text with the final
+    counts — is still there, with no widget state at all; and no maths is left as raw LaTeX."""
+    mtime = saved.stat().st_mtime
+    page.evaluate("() => window.jupyterapp.commands.execute('docmanager:save')")
+    _wait(lambda: saved.stat().st_mtime > mtime, 60, "the notebook saved again without a kernel")
+    nb = nbformat.read(saved, as_version=4)
+    state = nb.metadata.get("widgets", {}).get("application/vnd.jupyter.widget-state+json", {})
+    print("widget models after the autosave-like save:", len(state.get("state", {})))
+    nb.metadata.pop("widgets", None)  # what autosave leaves, whatever this JupyterLab kept
+    nbformat.write(nb, saved)
+    app_cell = next(c for c in nb.cells if c.cell_type == "code" and c.source.strip().endswith("\napp"))
+    kinds = [set(o.get("data", {})) for o in app_cell.outputs]
+    assert any("image/png" in k for k in kinds), kinds
+    status = "\n".join(o["data"]["text/plain"] for o in app_cell.outputs
+                       if set(o.get("data", {})) == {"text/plain"})
+    assert status.startswith("status: ") and f"frames {final['frames']} of " in status, status
+    assert f"keyframes {final['keyframes']} · points {final['points']}" in status, status
+    page.reload()
+    page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget", timeout=90_000)
+    page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
+    status_el = page.get_by_text(status.splitlines()[0]).first
+    status_el.wait_for(timeout=60_000)
+    pngs = _wait(lambda: page.evaluate(TWIN_JS), 30, "the PNG outputs")
+    assert any(w >= 800 and h >= 300 for w, h in pngs), pngs  # the twin's picture (960 x 368)
+    status_el.scroll_into_view_if_needed()
+    page.screenshot(path=str(lab["tmp"] / "autosaved_reopened.png"))
+    _keep_screenshot(lab["tmp"] / "autosaved_reopened.png")
+    out = lab["tmp"] / "html-autosaved"
+    subprocess.run([sys.executable, "-m", "jupyter", "nbconvert", "--to", "html", str(saved), "--output-dir",
+                    str(out)], check=True, capture_output=True, env=lab["env"])
+    static = browser.new_page(viewport={"width": 1500, "height": 1100})
+    try:
+        static.route("http*://**", lambda route: route.abort()
+                     if not route.request.url.startswith("http://127.0.0.1") else route.continue_())  # offline
+        static.goto((out / saved.with_suffix(".html").name).as_uri())
+        static.get_by_text(status.splitlines()[0]).first.wait_for(timeout=30_000)
+        text = static.evaluate("() => document.body.innerText")  # what a reader sees: no raw LaTeX
+        raw = [t for t in ("$$", "$\\", "\\frac", "\\operatorname", "\\Delta", "\\top", "_{") if t in text]
+        assert not raw, raw
+        pngs = _wait(lambda: static.evaluate(TWIN_JS), 30, "the PNG outputs in the offline HTML")
+        assert any(w >= 800 and h >= 300 for w, h in pngs), pngs
+        static.screenshot(path=str(lab["tmp"] / "autosaved_nbconvert.png"))
+        _keep_screenshot(lab["tmp"] / "autosaved_nbconvert.png")
+    finally:
+        static.close()
+
+
+def _keep_screenshot(path: Path) -> None:
+    if os.environ.get("SLAMKIT_SCREENSHOTS"):
+        Path(os.environ["SLAMKIT_SCREENSHOTS"]).mkdir(parents=True, exist_ok=True)
+        shutil.copy(path, Path(os.environ["SLAMKIT_SCREENSHOTS"]) / path.name)
+
+
 def _no_raw_html(page) -> None:
     texts = page.locator(".jp-OutputArea-output").all_text_contents()
     bad = [t for t in texts if "<span" in t or "<div" in t or "ViewSettings(" in t]
@@ -431,5 +492,6 @@ def test_step_through_notebook_in_chromium(lab):
             # --- Save, stop the kernel, reopen: every 3D view shows a map, the app its widgets
             saved = _save_and_stop_kernel(page, lab)
             _check_saved_without_kernel(browser, page, lab, saved, s)
+            _check_autosave_cycle(browser, page, lab, saved, s)
         finally:
             browser.close()

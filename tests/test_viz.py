@@ -503,6 +503,13 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert app.f_cur.value[:2] == b"\xff\xd8" and app.f_kf.value[:2] == b"\xff\xd8"
         assert "keyframe image id" in app.f_kf_label.value
         assert app.step() is None and "the run is finished" in app.status_text  # Step at the end says so
+        # the static twin (what a notebook saved without widget state shows): a picture and the status
+        from slamkit.viz.static_twin import app_picture, app_text
+        assert app_picture(app)[:8] == b"\x89PNG\r\n\x1a\n"
+        twin = app_text(app)
+        assert twin.startswith("status: the run is finished") and (
+            f"frames 24 of 24 · keyframes {app.slam.slam_map.num_keyframes} · points {app.slam.slam_map.num_points}"
+            in twin), twin
         # the finished map is also frozen in the app's view: a saved notebook shows it without a kernel
         assert 'class="slamkit-snapshot"' in app.map_html.value and "slamkit-legend" in app.map_html.value
         assert app.m_image.layout.display == "none"  # no broken-image icon before a picture is drawn
