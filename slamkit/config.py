@@ -198,15 +198,18 @@ ALIASES = {
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     # the source paper's settings (§3): flow 0.05, 50 matches, 20 initialization frames
-    "seed": {"flow_threshold": 0.05, "min_tracked_matches": 50, "init_frames": 20, "loop_closing.enabled": False},
+    # and its mapper: COLMAP's incremental triangulator, a fixed initialization window
+    "seed": {"flow_threshold": 0.05, "min_tracked_matches": 50, "init_frames": 20, "loop_closing.enabled": False,
+             "mapper": "colmap", "initializer.window_overlap": 0.0},
     # fewer features and a smaller local BA for speed
     "fast": {"num_features": 1200, "ba.local_window": 4, "ba.local_iterations": 10, "mapper.neighbors": 3},
     # more features, more keyframes, larger windows
     "accurate": {"num_features": 3000, "flow_threshold": 0.03, "ba.local_window": 10, "mapper.neighbors": 6,
                  "ba.global_max_keyframes": 600},
     "sift": {"features": "sift"},
-    # driving and other fast forward motion: starving keyframes triangulate down to 0.5 deg (issue 17)
-    "driving": {"mapper.starved_points": 150},
+    # COLMAP's triangulator with its starving rule (issue 17: starving keyframes triangulate down to 0.5 deg),
+    # what driving footage needed before local mapping became the default (issue 39), which maps it as it is
+    "driving": {"mapper": "colmap", "mapper.starved_points": 150},
     # learned feature pipelines (pip install 'slamkit[learned]'): the FEATURE_PIPELINES below
     "xfeat": {"features": "xfeat"},
     "xfeat-lighterglue": {"features": "xfeat-lighterglue"},

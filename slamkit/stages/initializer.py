@@ -41,8 +41,8 @@ class InitializerConfig:
     init_frames: int = 20
     """Largest size of the initialization window N (frames); with ``window_overlap`` the window closes
     earlier when the camera moves fast, and at the end of the sequence it is tried with what it holds."""
-    window_overlap: float = 0.0
-    """best_pair's motion window (off by default; benchmarks/HISTORY.md, "Local mapping"): the window is tried
+    window_overlap: float = 0.3
+    """best_pair's motion window (benchmarks/HISTORY.md, "Local mapping"; the ``seed`` preset has it off): the window is tried
     as soon as the newest frame shares fewer window matches with the window's first frame than this fraction of
     what the first two frames share (fast motion: a fixed window of N frames would span so much that the map
     made from it is out of view by its end). 0: always N frames. At 0.3 KITTI 07 and 7-Scenes at their natural

@@ -24,11 +24,14 @@ MAPPER_METHODS = ("colmap", "local")
 
 @dataclass(frozen=True)
 class MapperConfig:
-    method: str = "colmap"
-    """How a keyframe's new map points are made: "colmap" (this module: COLMAP's ``IncrementalTriangulator``
-    with one angle threshold, matched with ``neighbors`` keyframes; the ``seed`` preset) or "local"
-    (``slamkit.stages.local_mapper``: ORB-SLAM's local mapping, points created against 10-20 covisible
-    keyframes, checked, culled when tracking does not find them, and fused; config ``local_mapping``)."""
+    method: str = "local"
+    """How a keyframe's new map points are made: "local" (the default; ``slamkit.stages.local_mapper``:
+    ORB-SLAM's local mapping, points created against 10-20 covisible keyframes, checked, culled when tracking
+    does not find them, and fused; config ``local_mapping``) or "colmap" (this module: COLMAP's
+    ``IncrementalTriangulator`` with one angle threshold, matched with ``neighbors`` keyframes; the ``seed``
+    preset, the source paper's design). Local mapping keeps forward motion mapped where COLMAP's triangulator
+    loses it (KITTI 07 at every 2nd / 3rd frame: 100 % posed against 56 % / 35 %; benchmarks/HISTORY.md,
+    "Local mapping by default (issue 39)")."""
     neighbors: int = 4
     """The new keyframe is matched with the last keyframe and up to ``neighbors - 1`` covisible ones."""
     max_epipolar_error_px: float = 2.0
