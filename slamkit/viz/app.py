@@ -37,9 +37,9 @@ from ..sources import open_source
 from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
-from .explain import camera_html, flow_help_html, scale_html
+from .explain import camera_html, flow_help_html, legend_html, scale_html
 from .kept_files import keeping_unsaved_files
-from .meshcat_view import MapView
+from .meshcat_view import MapView, legend_html as view_legend_html
 from .settings import ViewSettings
 from .static_twin import StaticTwin
 
@@ -79,7 +79,7 @@ class SlamApp(AppWidgets):
         """The plain outputs under the widgets (a picture and the status text) that a saved notebook keeps."""
         self._hooked = None
         self._build_widgets(self.slam.config, self.source_spec, len(self.slam.source), out_dir, self.view.settings,
-                            self.view.iframe_html(self.map_height))
+                            self.view.iframe_html(self.map_height, legend=False))
         self._connect()
         self._refresh_all()
 
@@ -109,7 +109,7 @@ class SlamApp(AppWidgets):
         for w in (self.w_max, self.w_init, self.w_flow, self.w_matches, self.w_features):
             w.observe(lambda _: self._show_pending(), "value")
         for w in (self.v_bg, self.v_path, self.v_kf, self.v_cur, self.v_pts, self.v_dirs, self.v_fscale,
-                  self.v_psize, self.v_track, self.v_clip_on, self.v_clip):
+                  self.v_psize, self.v_track, self.v_clip_on, self.v_clip, self.v_color):
             w.observe(lambda _: self._guard(self._apply_view_settings), "value")
 
     def _guard(self, fn, *args):
@@ -341,7 +341,7 @@ class SlamApp(AppWidgets):
     def _show_map(self, snapshot: bool) -> None:
         """The live 3D view in the app; with ``snapshot`` it also holds the current scene frozen, which a
         saved notebook (with its widget state) shows when no kernel serves the live view."""
-        html_ = self.view.iframe_html(self.map_height, snapshot=snapshot)
+        html_ = self.view.iframe_html(self.map_height, snapshot=snapshot, legend=False)  # the legend: v_legend
         if self.map_html.value != html_:
             self.map_html.value = html_
 
@@ -517,6 +517,7 @@ class SlamApp(AppWidgets):
         describe = getattr(self.slam, "describe_camera", None)
         self.w_help.value = (flow_help_html(float(camera.fx), kf.flow_threshold, kf.min_tracked_matches)
                              + (camera_html(describe()) if describe is not None else ""))
+        self.v_legend.value = legend_html(view_legend_html(self.view.legend_items()))
         sc = self.view.scale_numbers()
         self.v_units.value = (scale_html(sc["extent"], sc["frustum_depth"], sc["point_diameter"], sc["view_depth"])
                               if len(self.view.keyframe_ids) else "")
@@ -541,7 +542,8 @@ class SlamApp(AppWidgets):
         self.view.configure(background=self.v_bg.value, show_path=self.v_path.value, show_keyframes=self.v_kf.value,
                             show_current=self.v_cur.value, show_points=self.v_pts.value,
                             show_directions=self.v_dirs.value, frustum_scale=float(self.v_fscale.value),
-                            point_size=float(self.v_psize.value), track_point=track, clip=clip)
+                            point_size=float(self.v_psize.value), track_point=track, clip=clip,
+                            color_by=str(self.v_color.value))
         self.v_track_info.value = (f"lines to the {self.view.scene_counts().get('track', 0)} keyframes that see it"
                                    if track >= 0 else "")
         self._refresh_help()
