@@ -16,6 +16,7 @@ camera-to-world unless named ``cam_from_world``.
 from __future__ import annotations
 
 import copy
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -431,6 +432,22 @@ def plot_loop_correction(ax, lc: LoopCorrection, unit: str = "m") -> None:
     ax.legend(fontsize=8, loc="best")
 
 
+def describe_focal(estimate, true_focal: float | None = None) -> str:
+    """One line for a focal-length estimate (``stages.self_calibration.FocalEstimate``) that claims no more
+    than it knows: a weak estimate gets no ± (it is not a measurement); otherwise the bootstrap spread is
+    named for what it is — how closely the frame pairs agree, not the error — beside the error against
+    ``true_focal`` (pixels) when it is known."""
+    if not math.isfinite(estimate.focal):
+        return f"no estimate ({estimate.reason or 'no usable frame pair'})"
+    head = f"f = {estimate.focal:.1f} px from {estimate.num_pairs} frame pairs"
+    if estimate.weak:
+        return f"{head} — weak, not a measurement: {estimate.reason or 'the frames barely constrain it'}"
+    text = f"{head}; the pairs agree within {100 * estimate.uncertainty:.1f} % (bootstrap spread, not the error)"
+    if true_focal:
+        text += f"; the error is {100 * (estimate.focal / true_focal - 1):+.1f} % (true f = {true_focal:g} px)"
+    return text
+
+
 # ---------------------------------------------------------------------------------------------- drawing
 
 
@@ -450,7 +467,7 @@ def plot_matches(ax, frame1: Frame, frame2: Frame, comparison: FeatureComparison
     ax.axis("off")
 
 
-__all__ = ["plot_matches", "skew", "relative_pose", "fundamental_from_poses", "epipolar_distances", "FeatureComparison",
+__all__ = ["describe_focal", "plot_matches", "skew", "relative_pose", "fundamental_from_poses", "epipolar_distances", "FeatureComparison",
            "detect_and_match", "compare_features", "learned_pipelines", "FlowScores", "flow_scores", "TwoView",
            "triangulation_angles", "two_view", "reprojection_errors", "AdjustmentDemo", "perturb_and_adjust",
            "LoopCorrection", "loop_correction", "plot_loop_correction"]
