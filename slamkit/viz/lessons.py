@@ -404,6 +404,20 @@ def loop_correction(gt, before, after, closure, frame_times: np.ndarray) -> Loop
                           gap(g_xyz), gap(b_xyz), gap(a_xyz), rb.rmse, ra.rmse)
 
 
+def lap_of(spec: str, source_index: int) -> int | None:
+    """The lap (1, 2, ...) a frame of a synthetic sequence driven round several times belongs to (its spec
+    gives ``laps`` and ``frames``: frame ``j * (frames - 1) / laps`` ends lap j); None for other sources."""
+    from ..sources.synthetic import parse_spec
+
+    if not str(spec).startswith("synthetic:"):
+        return None
+    params = parse_spec(spec)[1]
+    if "laps" not in params or "frames" not in params:
+        return None
+    per_lap = (int(params["frames"]) - 1) / int(params["laps"])
+    return min(int(source_index // per_lap) + 1, int(params["laps"]))
+
+
 def plot_loop_correction(ax, lc: LoopCorrection, unit: str = "m") -> None:
     """Top view (axes in metres) of the ground truth, the map before the loop closure and after it, and the
     closure: the two frames the loop joins, before (dashed) and after (thick) the correction; the gaps and
@@ -467,7 +481,7 @@ def plot_matches(ax, frame1: Frame, frame2: Frame, comparison: FeatureComparison
     ax.axis("off")
 
 
-__all__ = ["describe_focal", "plot_matches", "skew", "relative_pose", "fundamental_from_poses", "epipolar_distances", "FeatureComparison",
+__all__ = ["describe_focal", "lap_of", "plot_matches", "skew", "relative_pose", "fundamental_from_poses", "epipolar_distances", "FeatureComparison",
            "detect_and_match", "compare_features", "learned_pipelines", "FlowScores", "flow_scores", "TwoView",
            "triangulation_angles", "two_view", "reprojection_errors", "AdjustmentDemo", "perturb_and_adjust",
            "LoopCorrection", "loop_correction", "plot_loop_correction"]
