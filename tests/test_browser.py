@@ -6,9 +6,13 @@ the clip range must go), Step three frames, drag the flow-threshold slider (the 
 pending until Reset), Reset, Run, Pause (the kernel must stay responsive during the run), Run to the end.
 Inside the meshcat viewer's iframe it counts the three.js scene's points and keyframe frustums against the
 app's map, checks that the current-frame marker sits at the end of the drawn path after the run (the final
-bundle adjustment moved it) and that the map's projected 5-95 % box covers at least half of the viewer with
+bundle adjustment moved it) and inside the view, that the newest frames stay inside the view while the run
+goes (paused mid-run: the view follows the camera) with the legend under the viewer, not over it, that the
+legend lists only what is drawn, that the map's projected 5-95 % box covers at least half of the viewer with
 the camera the app set, and compares screenshots of the 3D view before and after the run. No output may
-show raw HTML text.
+show raw HTML text. Then the saved notebook: reopened without a kernel, converted offline, and saved again
+the way JupyterLab's autosave does it (no widget state) and reopened: the app's static twin (its picture and
+status text, with the final counts) is still there, and no maths shows as raw LaTeX.
 
 Skipped, with the reason, when chromium (``/usr/bin/chromium``), Playwright (Python) or JupyterLab is not
 installed. Screenshots go to the test's temporary folder (and to ``$SLAMKIT_SCREENSHOTS`` when set).
@@ -194,6 +198,29 @@ def _check_geometry(viewer_frame, frame_el) -> dict:
             "box": [lo.round(3).tolist(), hi.round(3).tolist()]}
     print("framing:", info)
     assert front.mean() > 0.95 and coverage >= 0.5, info
+    # the current frame is inside the view (the legend is under the viewer, not over it)
+    marker_ndc, marker_front = ndc(marker[None])
+    assert marker_front.all() and np.abs(marker_ndc).max() < 1.0, marker_ndc
+    return info
+
+
+def _check_following(viewer_frame, frame_el, page) -> dict:
+    """During a run (paused): the newest frame of the path, and the current frame when drawn, are inside
+    the view as its camera is now, and the app's legend is under the viewer, not over it."""
+    frame_el.scroll_into_view_if_needed()
+    time.sleep(0.6)
+    g = _wait(lambda: (lambda g: g if g["path"] else None)(viewer_frame.evaluate(GEOMETRY_JS)), 30, "the path")
+    view = np.linalg.inv(_mat(g["camera"]))
+    newest = [_world(g["path"])[-1]] + ([_mat(g["current"])[:3, 3]] if g["current"] and g["current_visible"] else [])
+    clip = np.c_[np.array(newest), np.ones(len(newest))] @ (_mat(g["proj"]) @ view).T
+    assert (clip[:, 3] > 0).all(), clip
+    ndc = clip[:, :2] / clip[:, 3:4]
+    viewer = frame_el.bounding_box()
+    legend = page.locator(".slamkit-app .slamkit-legend").first.bounding_box()
+    clear = legend["y"] >= viewer["y"] + viewer["height"] - 1 or legend["y"] + legend["height"] <= viewer["y"] + 1
+    info = {"newest_ndc": ndc.round(3).tolist(), "legend_clear_of_viewer": clear}
+    print("following:", info)
+    assert np.abs(ndc).max() < 1.0 and clear, info
     return info
 
 
@@ -457,6 +484,7 @@ def test_step_through_notebook_in_chromium(lab):
             time.sleep(2.0)
             assert _summary(page)["frames"] == paused_at  # paused: no more frames
             middle = _shot(page, map_frame_el, tmp / "map_paused.png")
+            geometry["paused"] = _check_following(_live_viewer(page), map_frame_el, page)
             run.click()
             _wait(lambda: _summary(page)["frames"] == PARAMS["max_frames"], 120, "the run to finish")
             _wait(lambda: run.text_content().strip() == "Run", 30, "the Run label after the end")
@@ -473,6 +501,9 @@ def test_step_through_notebook_in_chromium(lab):
             assert scene["frustums"] == s["keyframes"] == s["scene-keyframes"]
             after = _shot(page, map_frame_el, tmp / "map_after_run.png")
             geometry["run_to_the_end"] = _check_geometry(viewer_frame, map_frame_el)
+            legend = page.locator(".slamkit-app .slamkit-legend").first.text_content()
+            assert "points by height" in legend and "current frame" in legend, legend
+            assert "loop closure" not in legend and "selected track" not in legend, legend  # neither is drawn
             _no_raw_html(page)
 
             # --- the rendered view changed
