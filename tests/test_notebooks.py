@@ -98,8 +98,11 @@ def test_notebook_runs(path: Path, tmp_path: Path):
         # the two mappers on the same frames: local mapping's counts per keyframe, both runs posed and accurate
         assert re.search(r"local mapping: \d+ points created, \d+ recent points culled, \d+ duplicates fused", text)
         table = next(c for c in nb.cells if c.cell_type == "code" and c.source.startswith("def compare(run)"))
-        posed = re.search(r"frames posed \(%\)\s+([0-9.]+)\s+([0-9.]+)", table.outputs[0]["data"]["text/plain"])
-        assert posed and float(posed.group(1)) > 90 and float(posed.group(2)) > 90, table.outputs
+        found = re.findall(r"^(colmap|local)\s+([0-9.]+)\s+(\d+)\s+(\d+)\s+([0-9.]+)$",
+                           table.outputs[0]["data"]["text/plain"], re.M)
+        rows = {r[0]: r[1:] for r in found}
+        assert set(rows) == {"colmap", "local"}, table.outputs  # keyframes and points printed as integers
+        assert all(float(r[0]) > 90 for r in rows.values()), rows
         # Run All ends on a populated app: the last cell ran the new settings to the end
         n_before, n_after = (int(v) for v in re.findall(r"0\.0[58]: (\d+)", text.split("keyframes with")[-1]))
         assert n_after >= 2 and "showing the saved run" in text

@@ -277,8 +277,9 @@ class MapView:
         return snapshot_iframe(self.static_html(title, caption), f"{int(round(height * self.aspect))}px", height)
 
     def snapshot(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> HTML:
-        """:meth:`snapshot_html` as a cell output (the last expression of a cell)."""
-        return HTML(self.snapshot_html(height, title, caption))
+        """:meth:`snapshot_html` as a cell output (the last expression of a cell; in a ``<div>``, which IPython
+        shows without its "use IFrame" warning)."""
+        return HTML(f"<div>{self.snapshot_html(height, title, caption)}</div>")
 
     def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None, legend: bool = True) -> str:
         """The current scene as one self-contained HTML page (the viewer's JavaScript included), titled
