@@ -126,9 +126,9 @@ def test_notebook_runs(path: Path, tmp_path: Path):
                       r"([0-9.e+-]+) m after", text)
         assert g, "the loop closure's gaps against ground truth"
         assert (int(g.group(1)), int(g.group(2)), int(g.group(3))) == (query - 1, query, candidate)
-        truth, before, after = (float(v) for v in g.groups()[3:])
-        assert before - truth > 1.0  # a visible drift: metres
-        assert abs(after - truth) < 0.2 * abs(before - truth)  # closed
+        truth, gap_before, gap_after = (float(v) for v in g.groups()[3:])
+        assert gap_before - truth > 1.0  # a visible drift: metres
+        assert abs(gap_after - truth) < 0.2 * abs(gap_before - truth)  # closed
         a = re.search(r"ATE over the \d+ frames before the closure: ([0-9.e+-]+) m before the correction, "
                       r"([0-9.e+-]+) m after", text)
         assert a and float(a.group(2)) <= 0.7 * float(a.group(1)), a and a.groups()
