@@ -30,7 +30,10 @@ def extract_frames(video: str | Path, out: str | Path, every: int = 1, max_frame
         raise ExtractError(f"--every must be >= 1 (got {every})")
     if not video.is_file():
         raise ExtractError(f"{video}: no such file")
-    cap = cv2.VideoCapture(str(video))
+    from slamkit.sources.base import plain_name
+
+    with plain_name(video) as name:  # any bytes in the name (OpenCV crashes on a name that is not UTF-8)
+        cap = cv2.VideoCapture(name)
     if not cap.isOpened():
         raise ExtractError(f"{video}: cannot be opened as a video (unknown format or codec)")
     fps = cap.get(cv2.CAP_PROP_FPS) or 30.0
@@ -47,8 +50,13 @@ def extract_frames(video: str | Path, out: str | Path, every: int = 1, max_frame
                 if width and img.shape[1] != width:
                     h = round(img.shape[0] * width / img.shape[1])
                     img = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA)
-                if not cv2.imwrite(str(out / f"{n:06d}.png"), img):
-                    raise ExtractError(f"{out}: cannot write images there")
+                ok, png = cv2.imencode(".png", img)  # written by Python: any bytes in the folder's name
+                if not ok:
+                    raise ExtractError(f"{video}: frame {i} cannot be encoded as PNG")
+                try:
+                    (out / f"{n:06d}.png").write_bytes(png.tobytes())
+                except OSError as e:
+                    raise ExtractError(f"{out}: cannot write images there ({e.strerror})") from None
                 times.append(i / fps)
                 n += 1
             i += 1

@@ -6,6 +6,10 @@
 >>> slam.save("runs/demo")                                                      # doctest: +SKIP
 """
 
+from .interrupt import quiet_startup_interrupt as _quiet_startup_interrupt
+
+_quiet_startup_interrupt()  # the `slamkit` command: Ctrl-C while the imports below run is one line, not a traceback
+
 from .camera import Intrinsics
 from .config import PRESETS, SlamConfig
 from .errors import (AssociationError, CalibrationError, ConfigError, FormatError, ImageReadError, OutputError,

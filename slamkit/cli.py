@@ -23,13 +23,15 @@ from .errors import SlamkitError
 from .eval import evaluate
 from .eval.report import check_posed, evaluate_run
 from .exporter import add_export_parser
-from .io.run_dir import check_output, out_dir_lock, save_id
+from .eval.pairing import read_frame_table
+from .io.run_dir import check_output, is_run_folder, out_dir_lock, save_id
 from .io.saved import check_run
-from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, notify, raise_interrupted
+from .interrupt import HELD_SIGNALS, Interrupted, StopRequest, exit_code, notify, raise_interrupted, signal_name
 from .io import write_tum
 from .io.trajectory import check_input_file
 from .pipeline import Slam
-from .runner import ABORTED, RunOutcome, run_to_folder, summary_line
+from .runner import (ABORTED, EXIT_CODES, EXIT_NOTHING_POSED, EXIT_POOR_MATCH, EXIT_USAGE, RunOutcome, run_to_folder,
+                     summary_line)
 from .sources import open_source
 from .stages.mapper import MAPPER_METHODS
 
@@ -98,7 +100,8 @@ def _resume_overrides(args: argparse.Namespace) -> dict:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run (or with --resume continue) SLAM into --out (:func:`slamkit.runner.run_to_folder`); print progress
-    and the outcome, and map it to the exit code (0, 1 a stage failed, 128 + signal when interrupted)."""
+    and the outcome, and map it to the exit code (0 a map was made, 1 a stage failed, 3 no frame posed, 128 +
+    signal when interrupted)."""
     pycolmap.logging.minloglevel = 2
     out = Path(args.out)
     bar = None
@@ -163,6 +166,9 @@ def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
         print(f"evaluation skipped: {outcome.evaluation_error}", file=sys.stderr)
     print(f"outputs in {out}/ (trajectory_tum.txt, keyframes_tum.txt, trajectory_kitti.txt, sparse/, points.ply, "
           f"summary.json, session/)")
+    if outcome.exit_code == EXIT_NOTHING_POSED:
+        print(f"slamkit: no frame was posed, so no map was made (exit code {EXIT_NOTHING_POSED}); {out} holds the "
+              "run's frame table and summary", file=sys.stderr)
     if outcome.message and outcome.complete:
         print(f"slamkit: {outcome.message}; saved in {out}", file=sys.stderr)
     elif outcome.message:
@@ -172,6 +178,16 @@ def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
     return outcome.exit_code
 
 
+def _print_notes(result: dict) -> int:
+    """Print the evaluation's notes and warnings (stderr); the exit code: :data:`EXIT_POOR_MATCH` when
+    fewer than half of the estimate matched ground truth, else 0."""
+    for note in result.get("notes", []):
+        print(f"slamkit: note: {note}", file=sys.stderr)
+    for warning in result.get("warnings", []):
+        print(f"slamkit: warning: {warning} (exit code {EXIT_POOR_MATCH})", file=sys.stderr)
+    return EXIT_POOR_MATCH if result.get("warnings") else 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     run = Path(args.run)
     if args.gt is not None:
@@ -179,8 +195,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not run.exists():
         raise SlamkitError(f"{run}: does not exist (give a run folder written by `slamkit run --out`, or a "
                            "trajectory file)")
+    if args.out is not None and (not run.is_dir() or args.json_only):
+        raise SlamkitError(f"--out {args.out}: a report is written for a run folder only (without --json-only); "
+                           "for a trajectory file eval prints the numbers")
     if run.is_dir() and not args.json_only:
-        result = evaluate_run(run, gt=args.gt, max_dt=args.max_dt, map_view=not args.no_map_view)
+        result = evaluate_run(run, gt=args.gt, max_dt=args.max_dt, map_view=not args.no_map_view, out=args.out)
+        code = _print_notes(result)
         a, k = result["all_frames"]["ate"], (result.get("keyframes") or {}).get("ate")
         print(f"ATE RMSE {100 * a['rmse']:.2f} cm over {a['count']} frames"
               + (f", {100 * k['rmse']:.2f} cm over {k['count']} keyframes" if k else "")
@@ -188,23 +208,51 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if isinstance(result.get("camera"), dict) and result["camera"].get("description"):
             print(f"camera: {result['camera']['description']}", file=sys.stderr)
         print(json.dumps(result, indent=2))
-        return 0
+        return code
     if run.is_dir():
-        check_run(run, ("trajectory_tum.txt", "groundtruth_tum.txt"))
+        check_run(run, ("trajectory_tum.txt", "frames.csv", *(("groundtruth_tum.txt",) if args.gt is None else ())))
         check_posed(run)
     est = run / "trajectory_tum.txt" if run.is_dir() else run
     if args.gt:
         gt = check_input_file(args.gt, "--gt")
     else:
-        gt = run / "groundtruth_tum.txt"
+        gt = run / "groundtruth_tum.txt" if run.is_dir() else run.parent / "groundtruth_tum.txt"
         if not gt.exists():
             raise SlamkitError(f"{gt}: no ground truth beside the trajectory; pass --gt FILE")
-    result = evaluate(est, gt, max_dt=args.max_dt)
+    frames = read_frame_table(run) if run.is_dir() and is_run_folder(run) else None
+    result = evaluate(est, gt, max_dt=args.max_dt, frames=frames)
+    code = _print_notes(result)
     print(json.dumps(result, indent=2))
-    return 0
+    return code
+
+
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
+
+
+def check_scheduler_address(address: str) -> str:
+    """``--scheduler``: a dask scheduler address ``[SCHEME://]HOST:PORT`` (scheme tcp, tls, ws, wss or ucx;
+    port 1-65535), checked before anything connects; SlamkitError naming the option otherwise."""
+    text = address.strip()
+    scheme, sep, rest = text.partition("://")
+    if not sep:
+        scheme, rest = "tcp", text
+    host, colon, port = rest.rpartition(":")
+    why = None
+    if scheme not in SCHEDULER_SCHEMES:
+        why = f"the scheme {scheme!r} is not one of {', '.join(SCHEDULER_SCHEMES)}"
+    elif not colon or not host.strip("[]") or "/" in rest or any(c.isspace() for c in rest):
+        why = "expected HOST:PORT after the scheme"
+    elif not port.isdigit() or not 1 <= int(port) <= 65535:
+        why = f"the port {port[:20]!r} is not a number from 1 to 65535"
+    if why:
+        raise SlamkitError(f"--scheduler {address[:80]!r}: not a dask scheduler address ({why}); give "
+                           "tcp://HOST:PORT, as `dask scheduler` prints it")
+    return f"{scheme}://{rest}"
 
 
 def cmd_ablate(args: argparse.Namespace) -> int:
+    if args.scheduler is not None:
+        args.scheduler = check_scheduler_address(args.scheduler)
     check_sweep_args(args.out, args.workers, flag_out="--out", flag_workers="--workers", sources=args.sources)
     items = list(args.grid)
     if args.features:
@@ -274,7 +322,8 @@ def cmd_presets(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``slamkit`` command line: one subcommand per library call."""
-    p = argparse.ArgumentParser(prog="slamkit", description="Offline monocular visual SLAM on COLMAP's machinery")
+    p = argparse.ArgumentParser(prog="slamkit", description="Offline monocular visual SLAM on COLMAP's machinery",
+                                epilog=EXIT_CODES)
     sub = p.add_subparsers(dest="command", required=True)
     _add_run_parser(sub)
     _add_eval_parser(sub)
@@ -294,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_run_parser(sub) -> None:
-    r = sub.add_parser("run", help="run SLAM on a source and save the map and trajectory")
+    r = sub.add_parser("run", help="run SLAM on a source and save the map and trajectory", epilog=EXIT_CODES)
     r.add_argument("source", help="'default', 'synthetic:<motion>', a dataset folder, an image folder or a video")
     r.add_argument("--out", required=True,
                    help="run folder: a new or empty folder, or an earlier slamkit run (replaced atomically; keeps a "
@@ -311,12 +360,17 @@ def _add_run_parser(sub) -> None:
 
 
 def _add_eval_parser(sub) -> None:
-    e = sub.add_parser("eval", help="ATE/RPE of a run (or a TUM file) against ground truth")
+    e = sub.add_parser("eval", help="ATE/RPE of a run (or a TUM file) against ground truth", epilog=EXIT_CODES)
     e.add_argument("run", help="run folder or trajectory file")
-    e.add_argument("--gt", help="ground truth (TUM or KITTI); default RUN/groundtruth_tum.txt")
+    e.add_argument("--gt", help="ground truth: TUM (paired by time) or KITTI's poses/NN.txt (12 values a line, no "
+                                "time: paired by the run's source frame index, with a note); default "
+                                "RUN/groundtruth_tum.txt")
     e.add_argument("--max-dt", type=float, default=0.02)
     e.add_argument("--no-map-view", action="store_true", help="link points.ply instead of a static 3D map page")
     e.add_argument("--json-only", action="store_true", help="print the numbers only (no plots, no report)")
+    e.add_argument("--out", metavar="DIR",
+                   help="write the report into DIR (a new or empty folder, or an earlier report); needed when RUN is "
+                        "not a slamkit run folder (eval never writes into another tool's folder)")
     e.set_defaults(func=cmd_eval)
 
 
@@ -349,7 +403,7 @@ def main(argv: list[str] | None = None) -> int:
     except SlamkitError as e:
         handler.active = False
         print(f"slamkit: error: {e}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     except BrokenPipeError:  # `slamkit eval ... | head`: the reader left; not an error of ours
         with contextlib.suppress(OSError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -359,12 +413,13 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{e.filename}: " if e.filename else ""
         print(f"slamkit: error: {where}{e.strerror or e} (the operating system refused it; check the path)",
               file=sys.stderr)
-        return 2
-    except Interrupted as e:  # SIGTERM / SIGHUP outside a run: a one-line exit, not a native stack dump
+        return EXIT_USAGE
+    except KeyboardInterrupt as e:  # Ctrl-C (or SIGTERM / SIGHUP: Interrupted) outside a run's own handling
         handler.active = False
-        print(f"slamkit: {e}: stopped; every output is either complete or as it was before (files and folders "
-              "are replaced atomically, a temporary one is removed)", file=sys.stderr)
-        return e.exit_code
+        signum = getattr(e, "signum", signal.SIGINT)
+        print(f"slamkit: {signal_name(signum)}: stopped; every output is either complete or as it was before "
+              "(files and folders are replaced atomically, a temporary one is removed)", file=sys.stderr)
+        return exit_code(signum)
     finally:
         handler.active = False
         sys.unraisablehook = hook

@@ -198,9 +198,9 @@ ALIASES = {
 PRESETS: dict[str, dict[str, Any]] = {
     "default": {},
     # the source paper's settings (§3): flow 0.05, 50 matches, 20 initialization frames
-    # and its mapper: COLMAP's incremental triangulator, a fixed initialization window
+    # and its mapper: COLMAP's incremental triangulator, a fixed initialization window, COLMAP's BA filter
     "seed": {"flow_threshold": 0.05, "min_tracked_matches": 50, "init_frames": 20, "loop_closing.enabled": False,
-             "mapper": "colmap", "initializer.window_overlap": 0.0},
+             "mapper": "colmap", "initializer.window_overlap": 0.0, "ba.outlier_chi2": 0.0, "ba.local_passes": 1},
     # fewer features and a smaller local BA for speed
     "fast": {"num_features": 1200, "ba.local_window": 4, "ba.local_iterations": 10, "mapper.neighbors": 3},
     # more features, more keyframes, larger windows
@@ -209,7 +209,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     "sift": {"features": "sift"},
     # COLMAP's triangulator with its starving rule (issue 17: starving keyframes triangulate down to 0.5 deg),
     # what driving footage needed before local mapping became the default (issue 39), which maps it as it is
-    "driving": {"mapper": "colmap", "mapper.starved_points": 150},
+    "driving": {"mapper": "colmap", "mapper.starved_points": 150, "ba.outlier_chi2": 0.0, "ba.local_passes": 1},
     # learned feature pipelines (pip install 'slamkit[learned]'): the FEATURE_PIPELINES below
     "xfeat": {"features": "xfeat"},
     "xfeat-lighterglue": {"features": "xfeat-lighterglue"},

@@ -21,7 +21,22 @@ class SlamkitError(Exception):
     (``np.float64(0.5)`` reads as ``0.5``), however the message was formatted."""
 
     def __str__(self) -> str:
-        return _NUMPY_SCALAR.sub(r"\1", super().__str__())
+        return shown(_NUMPY_SCALAR.sub(r"\1", super().__str__()))
+
+
+def shown(text: str | os.PathLike) -> str:
+    """``text`` (a message or a path) as printable text: bytes of a file name that are not UTF-8 (held by Python
+    as lone surrogates, ``os.fsdecode``) are shown as ``\\xfe``, so that printing or saving it cannot fail."""
+    text = os.fspath(text) if isinstance(text, os.PathLike) else str(text)
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        pass
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    except UnicodeEncodeError:  # a surrogate that is no escaped byte
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 class SourceError(SlamkitError):

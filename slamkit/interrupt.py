@@ -20,8 +20,8 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 
-__all__ = ["HELD_SIGNALS", "Interrupted", "StopRequest", "deferred_interrupt", "exit_code", "notify", "signal_name",
-           "signals_blocked"]
+__all__ = ["HELD_SIGNALS", "Interrupted", "StopRequest", "deferred_interrupt", "exit_code", "notify",
+           "quiet_startup_interrupt", "signal_name", "signals_blocked"]
 
 HELD_SIGNALS: tuple[int, ...] = tuple(s for s in (getattr(signal, n, None) for n in ("SIGINT", "SIGTERM", "SIGHUP"))
                                       if s is not None)
@@ -157,3 +157,32 @@ def notify(message: str) -> None:
         os.write(sys.stderr.fileno(), (message.rstrip("\n") + "\n").encode())
     except (OSError, ValueError, AttributeError):
         pass
+
+
+STARTUP_MESSAGE = "slamkit: {signal}: stopped while starting; nothing was read or written"
+
+
+def _is_command() -> bool:
+    """True when this process is the ``slamkit`` command (the console script or ``python -m slamkit.cli``)."""
+    if sys.argv and os.path.basename(sys.argv[0]) == "slamkit":
+        return True
+    argv = list(getattr(sys, "orig_argv", None) or sys.argv)
+    return any(a == "-m" and b in ("slamkit.cli", "slamkit") for a, b in zip(argv, argv[1:]))
+
+
+def quiet_startup_interrupt() -> None:
+    """In the ``slamkit`` command only: a Ctrl-C that lands while the program starts (importing pycolmap,
+    OpenCV, numba: seconds), before the command's own handlers run, ends it with one line instead of a
+    traceback. Python still exits by SIGINT (the shell's code 130). Called first by ``slamkit/__init__``;
+    a library user's (or notebook's) exception display is never changed."""
+    if not _is_command():
+        return
+    previous = sys.excepthook
+
+    def hook(kind, value, tb) -> None:
+        if issubclass(kind, KeyboardInterrupt):
+            notify(STARTUP_MESSAGE.format(signal=signal_name(getattr(value, "signum", signal.SIGINT))))
+            return
+        previous(kind, value, tb)
+
+    sys.excepthook = hook

@@ -75,6 +75,16 @@ def bundle_adjustment_options(iterations: int, loss: str = "soft_l1", refine_int
     return o
 
 
+def keypoint_scales(features) -> np.ndarray:
+    """(N,) scale of each keypoint: its size over the smallest size in the image (ORB: 1.2^octave, so a
+    level's noise in pixels); ones without sizes."""
+    sizes = getattr(features, "sizes", None)
+    if sizes is None or len(sizes) == 0:
+        return np.ones(len(features))
+    s = np.asarray(sizes, np.float64)
+    return s / max(float(s[s > 0].min()) if (s > 0).any() else 1.0, 1e-9)
+
+
 def pycolmap_camera(camera: Intrinsics) -> pycolmap.Camera:
     """PINHOLE camera of the undistorted keypoints."""
     return pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
@@ -423,6 +433,12 @@ class SlamMap:
     def num_dropped_images(self) -> int:
         """Images of the reconstruction that are neither keyframes nor pending: culled or rejected ones."""
         return self.reconstruction.num_images() - len(self.keyframes) - len(self._pending)
+
+    def compact_when(self, every: int) -> None:
+        """:meth:`compact` once ``every`` (> 0) images or more are no longer keyframes, and at least as many as
+        there are keyframes (amortized O(1) per keyframe; ``mapper.compact_dropped``)."""
+        if every > 0 and self.num_dropped_images() >= max(every, self.num_keyframes):
+            self.compact()
 
     def compact(self) -> int:
         """Rebuild the Reconstruction, CorrespondenceGraph and ObservationManager without the images that are

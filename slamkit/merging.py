@@ -390,3 +390,21 @@ def segment_alignment(target_map: SlamMap, source_map: SlamMap, target_keyframes
         return SegmentAlignment(verification, np.empty((0, 2), np.int64))
     inl = pairs[verification.inlier_mask]
     return SegmentAlignment(verification, np.stack([t_ids[inl[:, 1]], s_ids[inl[:, 0]]], axis=1).astype(np.int64))
+
+def merge_candidate(state: SlamState, candidate) -> MergeResult:
+    """Loop closing recognised a place of an earlier segment (a
+    :class:`~slamkit.stages.loop_closer.MergeCandidate`): move the current segment's map and frames into the
+    earlier segment's map through the verified Sim(3) (:func:`merge_segments`), fusing the matched points,
+    and record the merge in ``state.map_merges`` (loop groups start over). The caller rebuilds its place
+    database: the moved keyframes' image ids changed."""
+    target, source = state.segments[candidate.candidate_segment], state.segments[candidate.segment]
+    query_frame = source.slam_map.keyframes[candidate.query_image_id].frame_index
+    candidate_frame = target.slam_map.keyframes[candidate.candidate_image_id].frame_index
+    res = merge_segments(state, target, source, candidate.tgt_from_src, candidate.point_pairs[:, ::-1])
+    state.loop_groups = ()
+    state.map_merges.append({"segment": res.source, "into": res.target, "query_frame": int(query_frame),
+                             "candidate_frame": int(candidate_frame), "inliers": candidate.inliers,
+                             "matches": candidate.matches, "keyframes_moved": res.keyframes_moved,
+                             "points_fused": res.points_fused, "scale": float(res.scale)})
+    return res
+

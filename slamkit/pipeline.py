@@ -10,8 +10,6 @@ Everything the run has done lives in :attr:`Slam.state`; the attributes below it
 
 from __future__ import annotations
 
-import copy
-import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -19,7 +17,6 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .camera import Intrinsics, focal_range
 from .config import SlamConfig, is_camera_path
 from .errors import CalibrationError, ImageReadError, check_type
 from .features import FrameFeatures, create_extractor, create_matcher
@@ -27,14 +24,15 @@ from .frames import FrameLoader, thumbnail
 from .interrupt import deferred_interrupt
 from .io.run import save_run
 from .local_map import LocalMap
-from .map import SlamMap, undistort_radial
-from .merging import MergeResult, merge_segments
+from .map import SlamMap
+from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
+from .run_camera import (camera_report, choose_camera, clamped, describe_camera, final_global_ba, first_estimate,
+                         refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
 from .sources import open_source
 from .sources.base import FrameSource
-from .sources.calibration import camera_from_path
-from .stages.ba import BundleAdjuster
+from .stages.ba import BundleAdjuster, filter_angle_after
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
 from .stages.initializer import Initializer, track_window
 from .stages.keyframes import KeyframeDecision, KeyframeSelector
@@ -117,22 +115,9 @@ class Slam:
         if config is not None:
             self.config = config.validate()
         c = self.config
-        self.camera = self.source.camera
-        self.camera_origin = "the source's calibration"
-        """How :attr:`camera` was obtained: the source's calibration, ``--camera``, a camera.txt, or estimated."""
-        self.calibrator: SelfCalibrator | None = None
-        """Self-calibration (``camera="auto"``, or no calibration given or found), else None."""
-        w, h = self.camera.width, self.camera.height
-        if c.camera == "auto" or (not c.camera and self.camera.is_guess):
-            self.camera = Intrinsics.from_focal(w, h)  # until calibrate(): no distortion is known
-            self.calibrator = SelfCalibrator(c.self_calibration, c.seed)
-            self.camera_origin = "estimated"
-        elif c.camera and is_camera_path(c.camera):  # a run folder or camera.txt: another run's camera
-            self.camera = camera_from_path(c.camera, w, h, "camera")
-            self.camera_origin = f"from {c.camera}"
-        elif c.camera:  # the user's intrinsics instead of the source's
-            self.camera = Intrinsics.parse(c.camera, w, h)
-            self.camera_origin = "given (camera=...)"
+        self.camera, self.camera_origin, self.calibrator = choose_camera(c, self.source.camera)
+        """The intrinsics in use; how they were obtained (the source's calibration, ``--camera``, a camera.txt, or
+        estimated); and the self-calibration (``camera="auto"``, or no calibration given or found), else None."""
         extractor = create_extractor(c.features, **c.extractor_options())  # first: its missing weights first
         matcher = None if c.matcher == "nn" else create_matcher(c.matcher, **c.matcher_options())  # "nn": per stage
         self.tracker = Tracker(replace(c.tracker, random_seed=c.seed))
@@ -285,15 +270,7 @@ class Slam:
             return cal
         self.loader.drain()  # the source is read by one thread at a time
         t, cpu = time.perf_counter(), time.process_time()
-        for cursor in range(min(len(self.indices), cal.config.window_frames)):
-            try:
-                frame = self.source[int(self.indices[cursor])]
-            except (ImageReadError, CalibrationError):  # the run skips it with its reason later
-                continue
-            cal.step(frame.gray)
-        w, h, fov = self.camera.width, self.camera.height, cal.config.fallback_fov_deg
-        cal.estimate(Intrinsics.from_focal(w, h).fx if not fov else max(w, h) / 2 / math.tan(math.radians(fov / 2)))
-        self._use_focal(cal.focal)
+        self._use_focal(first_estimate(cal, self.source, self.indices, self.camera))
         self.state.add_timings({"calibrate": time.perf_counter() - t})
         self.state.wall_time += time.perf_counter() - t
         self.state.cpu_time += time.process_time() - cpu
@@ -301,43 +278,19 @@ class Slam:
 
     def _use_focal(self, focal: float, cx: float | None = None, cy: float | None = None) -> None:
         """Track and initialize with this focal length (and principal point) from now on."""
-        lo, hi = focal_range(self.camera.width, self.camera.height)
-        focal = min(max(float(focal), lo * 1.001), hi * 0.999)
-        cx = self.camera.cx if cx is None else float(cx)
-        cy = self.camera.cy if cy is None else float(cy)
-        self.camera = replace(self.camera, fx=focal, fy=focal, cx=cx, cy=cy)
-        self.loader.camera = self.camera  # no distortion is known: the keypoints are the same
-        self.initializer.set_camera(self.camera)
+        self._use_camera(clamped(self.camera, focal, cx, cy))
 
-    def _use_radial(self, seg: Segment) -> float | None:
-        """After the final BA estimated ``k1`` in ``seg``'s SIMPLE_RADIAL camera: the map is PINHOLE again with
-        undistorted keypoints, and so are the frames still to be tracked again (``initial_frames``); returns
-        ``k1`` (0 when negligible). None (camera PINHOLE again, nothing else changed) when ``k1`` is beyond
-        ``self_calibration.max_radial``."""
-        radial = copy.copy(seg.slam_map.pycolmap_camera)  # the map's own is replaced by its PINHOLE part below
-        if abs(float(radial.params[3])) > self.config.self_calibration.max_radial:
-            seg.slam_map.drop_radial()
-            return None
-        k1 = seg.slam_map.undistort_observations()
-        if k1:
-            seg.initial_frames = [replace(f, keypoints=undistort_radial(radial, f.keypoints))
-                                  for f in seg.initial_frames]
-        return k1
+    def _use_camera(self, camera) -> None:
+        self.camera = camera
+        self.loader.camera = camera  # no distortion is known while tracking: the keypoints are the same
+        self.initializer.set_camera(camera)
 
     def _refining(self, slam_map: SlamMap, final: bool = False) -> bool:
-        """Whether this BA refines the focal length (self-calibration's second phase)."""
-        return self.calibrator is not None and self.calibrator.refining(slam_map.num_keyframes, final)
+        return refines(self.calibrator, slam_map, final)
 
-    def _refined(self, slam_map: SlamMap, final: bool = False, k1: float = 0.0,
-                 before: float | None = None) -> None:
-        """After a refining BA (its map's camera PINHOLE again): one focal length for both axes, used from now
-        on, and recorded with the radial coefficient ``k1`` the final BA estimated, which the run's camera
-        carries (``camera.txt``, export, ``--camera RUN_DIR``; no frame is read after the final BA)."""
-        fx, fy, cx, cy = (float(v) for v in slam_map.pycolmap_camera.params)
-        self._use_focal(0.5 * (fx + fy), cx, cy)  # kept within the sane range
-        slam_map.set_focal(self.camera.fx)
-        if k1:
-            self.camera = replace(self.camera, dist=(k1, 0.0, 0.0, 0.0, 0.0))
+    def _refined(self, slam_map: SlamMap, final: bool = False, k1: float = 0.0, before: float | None = None) -> None:
+        """After a refining BA: its focal length (and ``k1``) used from now on, and recorded by the calibrator."""
+        self._use_camera(refined_camera(self.camera, slam_map, k1))
         self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final, k1, before)
 
     # ----------------------------------------------------------------- initialization
@@ -466,26 +419,13 @@ class Slam:
             return False, "", mres.reason, KeyframeDecision(False, f"keyframe rejected: {mres.reason}", decision.flow,
                                                             tr.ref_matches), (LoopClosingResult(), None), mres
         t = time.perf_counter()
-        # the filter angle after BA: a starving keyframe's smaller angle for the next BAs (either mapper), local
-        # mapping's parallax when below BA's angle, else BA's own
-        lm = self.config.local_mapping
-        if not local:
-            small = self.config.mapper.starved_tri_angle_deg if mres.starved else None
-        else:
-            small = lm.starved_parallax_deg if mres.starved else (
-                lm.min_parallax_deg if lm.min_parallax_deg < self.config.ba.min_tri_angle_deg else None)
-        refine = self._refining(slam_map)
-        bres = self.bundle_adjuster.step(slam_map, mres.image_id, small, refine_focal=refine)
-        if refine:
-            self._refined(slam_map)
+        small = filter_angle_after(mres.starved, local, self.config.mapper, self.config.local_mapping, self.config.ba)
+        bres = self._adjust(seg, lambda m, refine_focal: self.bundle_adjuster.step(m, mres.image_id, small,
+                                                                                   refine_focal=refine_focal))
         timings["ba"] = time.perf_counter() - t
-        if bres.normalization is not None:
-            st.apply_normalization(seg, float(bres.normalization.scale))
         t = time.perf_counter()
         culled = self._cull_keyframes(seg, mres.image_id, exclude=(st.last_keyframe,))
-        n_drop, every = slam_map.num_dropped_images(), self.config.mapper.compact_dropped
-        if every > 0 and n_drop >= max(every, slam_map.num_keyframes):
-            slam_map.compact()
+        slam_map.compact_when(self.config.mapper.compact_dropped)
         timings["cull"] = time.perf_counter() - t
         message = mres.reason
         if culled:
@@ -518,36 +458,31 @@ class Slam:
             merge = self._merge_maps(res.merge_candidate)
             seg = self.state.segment
         if res.needs_global_ba or (merge is not None and merge.global_ba_advised):
-            refine = self._refining(seg.slam_map)
-            bres = self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=refine)
-            if refine:
-                self._refined(seg.slam_map)
-            if bres.normalization is not None:
-                self.state.apply_normalization(seg, float(bres.normalization.scale))
+            self._adjust(seg, self.bundle_adjuster.adjust_global)
             self.state.last_ids = None
         return res, merge
 
+    def _adjust(self, seg: Segment, adjust: Callable):
+        """A BA of ``seg``'s map (``adjust(slam_map, refine_focal=...)``), refining the focal length when
+        self-calibration says so; its normalization applied to the frames' poses. Returns its result."""
+        refine = self._refining(seg.slam_map)
+        bres = adjust(seg.slam_map, refine_focal=refine)
+        if refine:
+            self._refined(seg.slam_map)
+        if bres.normalization is not None:
+            self.state.apply_normalization(seg, float(bres.normalization.scale))
+        return bres
+
     def _merge_maps(self, candidate: MergeCandidate) -> MergeResult:
-        """The current segment recognised a place of an earlier one: move the current segment's map and frames
-        into the earlier segment's map through the verified Sim(3) (:func:`~slamkit.merging.merge_segments`),
-        fusing the matched points; tracking continues in the merged map."""
-        st = self.state
-        target, source = st.segments[candidate.candidate_segment], st.segments[candidate.segment]
-        query_frame = source.slam_map.keyframes[candidate.query_image_id].frame_index
-        candidate_frame = target.slam_map.keyframes[candidate.candidate_image_id].frame_index
-        res = merge_segments(st, target, source, candidate.tgt_from_src, candidate.point_pairs[:, ::-1])
-        self.loop_closer.rebuild(st.segments)  # image ids of the moved keyframes changed
-        st.loop_groups = ()
-        st.map_merges.append({"segment": res.source, "into": res.target, "query_frame": int(query_frame),
-                              "candidate_frame": int(candidate_frame), "inliers": candidate.inliers,
-                              "matches": candidate.matches, "keyframes_moved": res.keyframes_moved,
-                              "points_fused": res.points_fused, "scale": float(res.scale)})
+        """The current segment recognised a place of an earlier one: merged into it
+        (:func:`~slamkit.merging.merge_candidate`); tracking continues in the merged map."""
+        res = merge_candidate(self.state, candidate)
+        self.loop_closer.rebuild(self.state.segments)  # image ids of the moved keyframes changed
         return res
 
     def _cull_keyframes(self, seg: Segment, new_image_id: int, exclude: tuple[int, ...] = ()) -> list[int]:
-        """:class:`~slamkit.stages.culling.KeyframeCuller` around the new keyframe; the frames anchored to a
-        culled keyframe (itself included) keep their poses, re-anchored to its most covisible remaining
-        keyframe. Returns the culled image ids."""
+        """:class:`~slamkit.stages.culling.KeyframeCuller` around the new keyframe; frames anchored to a culled
+        keyframe keep their poses, re-anchored to its most covisible remaining keyframe. Returns the ids culled."""
         res = self.culler.step(seg.slam_map, new_image_id, exclude)
         for c in res.culled:
             self.state.reanchor(seg, c.image_id, c.anchor, c.culled_from_anchor)
@@ -577,18 +512,9 @@ class Slam:
         for seg in st.segments:
             if self.config.ba.final_global and seg.slam_map.num_keyframes >= 3:
                 refine = seg is main and self._refining(seg.slam_map, final=True)
-                radial = refine and self.config.self_calibration.refine_radial
-                before = float(seg.slam_map.pycolmap_camera.params[0])  # the focal length the map was built with
-                if radial:
-                    seg.slam_map.use_radial_camera()
-                bres = self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=refine, refine_radial=radial)
-                if bres.normalization is not None:
-                    st.apply_normalization(seg, float(bres.normalization.scale))
-                k1 = self._use_radial(seg) if radial else 0.0
-                if k1 is None:  # an implausible k1: a pinhole BA instead
-                    k1, bres = 0.0, self.bundle_adjuster.adjust_global(seg.slam_map, refine_focal=True)
-                    if bres.normalization is not None:
-                        st.apply_normalization(seg, float(bres.normalization.scale))
+                sc = self.config.self_calibration
+                before, k1 = final_global_ba(st, seg, self.bundle_adjuster, refine, refine and sc.refine_radial,
+                                             sc.max_radial)
                 if refine:
                     self._refined(seg.slam_map, final=True, k1=k1, before=before)
         st.timings["ba"] = st.timings.get("ba", 0.0) + time.perf_counter() - t
@@ -635,36 +561,18 @@ class Slam:
     def summary(self) -> dict:
         """The numbers of the seed's Table 2 and more, JSON-serialisable."""
         st = self.state
-        why = None if st.segments else self._why_not_initialized()
+        why = None if st.segments else st.why_not_initialized()
         return {"source": getattr(self.source, "name", str(self.source)), **st.summary(len(self.indices), why),
                 "camera": self.camera_report(), "config": self.config.to_dict()}
 
     def camera_report(self) -> dict:
         """The camera used and how it was obtained (with self-calibration: its estimate, uncertainty and
         history), JSON-serialisable."""
-        cal = self.calibrator
-        out = {**self.camera.to_dict(), "origin": self.camera_origin, "description": self.describe_camera()}
-        if cal is not None:
-            out["self_calibration"] = {**cal.state(), "weak": cal.weak}
-        return out
+        return camera_report(self.camera, self.camera_origin, self.calibrator)
 
     def describe_camera(self) -> str:
         """One line: the intrinsics used and where they come from."""
-        cam = self.camera
-        how = self.calibrator.describe() if self.calibrator is not None else self.camera_origin
-        return f"fx={cam.fx:.1f} fy={cam.fy:.1f} cx={cam.cx:.1f} cy={cam.cy:.1f}, {how}"
-
-    def _why_not_initialized(self) -> str:
-        """Why no map exists yet (for the summary): featureless frames, or the initializer's last reason."""
-        featureless = sum(r.status == SKIPPED and not r.unreadable for r in self.state.records)
-        if self.state.records and featureless == len(self.state.records):
-            return (f"all {featureless} frames so far had fewer than 8 keypoints (featureless: black, blank or "
-                    "badly blurred images?)")
-        if self.state.init_message:
-            return f"no initial pair found; last attempt: {self.state.init_message}"
-        if not self.state.records:
-            return "no frame processed yet"
-        return f"no initial pair tried yet ({self.state.records[-1].status}: {len(self.state.records)} frames so far)"
+        return describe_camera(self.camera, self.camera_origin, self.calibrator)
 
     # ----------------------------------------------------------------- saving and resuming
     def save(self, out_dir: str | Path) -> Path:

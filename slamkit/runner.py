@@ -35,15 +35,34 @@ from .pipeline import Slam, StepResult
 from .session import find_session
 from .state import describe_stages
 
-__all__ = ["RunOutcome", "run_to_folder", "summary_line"]
+__all__ = ["EXIT_CODES", "EXIT_FAILED", "EXIT_NOTHING_POSED", "EXIT_OK", "EXIT_POOR_MATCH", "EXIT_USAGE",
+           "RunOutcome", "run_to_folder", "summary_line"]
 
 FINISHED, INTERRUPTED, FAILED, ABORTED = "finished", "interrupted", "failed", "aborted"
+
+EXIT_OK = 0
+"""A map was made (``run``), the command did what it was asked (the others)."""
+EXIT_FAILED = 1
+"""A stage failed (the frames before it are saved), or some runs of an ablation failed."""
+EXIT_USAGE = 2
+"""Bad input: a path, value or file at fault, named in one line; nothing was written."""
+EXIT_NOTHING_POSED = 3
+"""``run``: the run went through its frames and saved, but posed none of them: no map (the reason is printed)."""
+EXIT_POOR_MATCH = 4
+"""``eval``: fewer than half of the estimate's poses matched ground truth: the numbers are not a measure of the run."""
+EXIT_CODES = (f"exit codes: {EXIT_OK} done (run: a map was made); {EXIT_FAILED} a stage failed (frames before it "
+              f"saved) or an ablation run failed; {EXIT_USAGE} bad input (one line names it; nothing written); "
+              f"{EXIT_NOTHING_POSED} run: ran but posed no frame (no map); {EXIT_POOR_MATCH} eval: less than half of "
+              "the estimate matched ground truth; 128+N stopped by signal N (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP): a "
+              "run saves what it built first; 141 the output pipe was closed")
+"""The exit codes of every command, as ``slamkit --help`` lists them."""
 
 
 @dataclasses.dataclass(frozen=True)
 class RunOutcome:
     """How a run ended. ``status``: finished | interrupted (a signal; saved) | failed (a stage raised;
-    saved) | aborted (the third signal; not saved)."""
+    saved) | aborted (the third signal; not saved). ``exit_code``: :data:`EXIT_OK` only when a map was made;
+    :data:`EXIT_NOTHING_POSED` when a finished run posed no frame; 1 failed; 128 + the signal."""
 
     out: Path
     status: str
@@ -99,8 +118,9 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
 
     def on_signal(signum: int, count: int) -> None:
         slam = state.get("slam")
-        what = ("stopping before the first frame" if slam is None or not slam.records
-                else "finishing the final bundle adjustment" if slam.done else "finishing the frame in progress")
+        if slam is None or not slam.records:  # starting: nothing to save; the one final line says what happened
+            return
+        what = "finishing the final bundle adjustment" if slam.done else "finishing the frame in progress"
         if count == 1:
             notify(f"{signal_name(signum)} received: {what}, then saving to {out} "
                    f"(send it {StopRequest.abort_after - 1} more times to stop at once without saving)")
@@ -115,7 +135,7 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
         slam, resumed_after = _open(source, out, config, resume, resume_overrides, notify)
         state["slam"] = slam
         check_out_dir(out, [source, slam.source], overwrite)
-        if on_start is not None:
+        if on_start is not None and stop.signum is None:  # a signal while opening: stop now, not after on_start
             on_start(slam, resumed_after)
         if stop.signum is not None:  # before the first frame: nothing new to save
             return RunOutcome(out, INTERRUPTED, exit_code(stop.signum), f"{signal_name(stop.signum)} before the "
@@ -160,6 +180,8 @@ def _loop_and_save(slam: Slam, out: Path, overwrite: bool, stop: StopRequest,
     if stop.signum is not None and status == FINISHED:  # a signal during the save: the save completed
         status, code = INTERRUPTED, exit_code(stop.signum)
         message = f"{signal_name(stop.signum)} received while saving; the save completed"
+    if status == FINISHED and not slam.summary().get("frames_posed"):  # ran through, but no map: not a success
+        code = EXIT_NOTHING_POSED
     return RunOutcome(out, status, code, message, True, slam.summary(), error, complete=slam.done and slam.finished)
 
 

@@ -325,6 +325,18 @@ class SlamState:
     def count(self, status: FrameStatus) -> int:
         return sum(r.status == status for r in self.records)
 
+    def why_not_initialized(self) -> str:
+        """Why no map exists yet (for the summary): featureless frames, or the initializer's last reason."""
+        featureless = sum(r.status == FrameStatus.SKIPPED and not r.unreadable for r in self.records)
+        if self.records and featureless == len(self.records):
+            return (f"all {featureless} frames so far had fewer than 8 keypoints (featureless: black, blank or "
+                    "badly blurred images?)")
+        if self.init_message:
+            return f"no initial pair found; last attempt: {self.init_message}"
+        if not self.records:
+            return "no frame processed yet"
+        return f"no initial pair tried yet ({self.records[-1].status}: {len(self.records)} frames so far)"
+
     def summary(self, frames_total: int, not_initialized_reason: str | None) -> dict:
         """Counts, map size and timings of the run so far, JSON-serialisable (``Slam.summary`` adds the
         source and the config)."""

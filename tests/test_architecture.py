@@ -1,4 +1,5 @@
-"""The package's import graph: no import cycle anywhere in ``slamkit/``, and no stage module importing another.
+"""The package's import graph: no import cycle anywhere in ``slamkit/``, and no stage module importing another;
+and no module of ``slamkit/`` grows past :data:`MAX_MODULE_LINES` lines.
 
 Every ``import`` / ``from ... import`` of a slamkit module counts, at module level or inside a function
 (an import hidden in a function still runs, and still closes a cycle); only imports under
@@ -150,3 +151,15 @@ def test_stages_do_not_import_each_other():
            for m, targets in graph.items() if m.startswith(STAGES + ".")}
     bad = {m: t for m, t in bad.items() if t}
     assert not bad, f"stage modules import other stage modules (move shared helpers to geometry.py or map.py): {bad}"
+
+
+MAX_MODULE_LINES = 600
+"""A module that grows past this is doing two things (issue 39: the pipeline had grown to 690 lines, mostly
+self-calibration's glue, which went to ``slamkit/run_camera.py``)."""
+
+
+def test_every_module_stays_under_600_lines():
+    sizes = {m: len(p.read_text(encoding="utf-8").splitlines()) for m, p in _modules().items()}
+    assert sizes["slamkit.pipeline"] > 100  # the count reads the real files
+    big = {m: n for m, n in sizes.items() if n >= MAX_MODULE_LINES}
+    assert not big, f"modules of {MAX_MODULE_LINES} lines or more (split them by what they do): {big}"

@@ -224,3 +224,23 @@ def test_extract_frames(tmp_path):
     assert ex.main([str(tmp_path / "nope.mp4"), str(out)]) == 2
     (tmp_path / "text.mp4").write_text("not a video")
     assert ex.main([str(tmp_path / "text.mp4"), str(out)]) == 2
+
+
+def test_extract_frames_from_a_name_that_is_not_utf8(tmp_path):
+    """A video and an output folder whose names hold a byte that is not UTF-8 (names from cameras and old
+    archives): OpenCV's reader and writer crash on such a name; the frames are read and written all the same."""
+    cv2 = pytest.importorskip("cv2")
+    import os
+
+    root = os.fsencode(tmp_path)
+    plain = tmp_path / "clip.avi"
+    w = cv2.VideoWriter(str(plain), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for i in range(6):
+        w.write(np.full((48, 64, 3), i * 40, np.uint8))
+    w.release()
+    video = Path(os.fsdecode(root + b"/clip\xfe.avi"))
+    os.rename(plain, video)
+    out = Path(os.fsdecode(root + b"/frames\xff"))
+    assert ex.extract_frames(video, out, log=lambda *a: None) == 6
+    third = cv2.imdecode(np.fromfile(out / "000002.png", np.uint8), cv2.IMREAD_COLOR)
+    assert abs(int(third.mean()) - 80) <= 3

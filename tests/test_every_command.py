@@ -30,7 +30,7 @@ from slamkit.exporter import export
 from slamkit.io import read_tum
 from slamkit.io.run_dir import check_output, out_dir_lock
 from slamkit.io.trajectory import PIPE_TIMEOUT
-from slamkit.runner import run_to_folder
+from slamkit.runner import EXIT_NOTHING_POSED, run_to_folder
 from slamkit.sources.synthetic import synthetic_source, write_tum_sequence
 
 from conftest import shared_data
@@ -413,9 +413,10 @@ def test_a_featureless_sequence_says_why_and_eval_says_nothing_was_posed(tmp_pat
     for i in range(12):
         cv2.imwrite(str(folder / f"{i:03d}.png"), np.zeros((240, 320, 3), np.uint8))
     run = tmp_path / "run"
-    assert main(["run", str(folder), "--camera", "300", "--out", str(run), "-q"]) == 0
+    assert main(["run", str(folder), "--camera", "300", "--out", str(run), "-q"]) == EXIT_NOTHING_POSED  # no map
     err = capsys.readouterr().err
     assert "all 12 frames so far had fewer than 8 keypoints (featureless" in err, err
+    assert f"no frame was posed, so no map was made (exit code {EXIT_NOTHING_POSED})" in err, err
     for extra in ([], ["--json-only"]):
         assert main(["eval", str(run), "--gt", str(trajectory[1]), *extra]) == 2
         assert "the run posed no frame, so there is nothing to evaluate" in _one_line(capsys.readouterr().err)

@@ -373,3 +373,17 @@ def test_lens_with_k3_maps_pixels_and_images_consistently():
         gy, gx = np.mgrid[0:out.shape[0], 0:out.shape[1]]
         centre = np.array([(gx * out).sum(), (gy * out).sum()]) / out.sum()
         np.testing.assert_allclose(centre + 0.5, flat.from_model(fr1.undistort_points(p[None]))[0], atol=0.15)
+
+
+def test_export_into_a_folder_whose_name_is_not_utf8(run_dir, tmp_path):
+    """OpenCV's image writer crashes on a name that is not UTF-8: the images are encoded by OpenCV and written
+    by Python, the same pixels as the source's frames."""
+    import os
+
+    out = Path(os.fsdecode(os.fsencode(tmp_path) + b"/ds\xfe"))
+    res = export(run_dir, out, format="nerfstudio")
+    files = sorted((out / "images").iterdir())
+    assert len(files) == res.num_images > 5
+    source = open_source("default")
+    pixels = cv2.imdecode(np.fromfile(files[0], np.uint8), cv2.IMREAD_COLOR)
+    assert np.array_equal(pixels, source[int(files[0].stem.split("_")[1])].color[:, :, ::-1])

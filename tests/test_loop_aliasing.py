@@ -41,8 +41,9 @@ def _run(**overrides) -> tuple[Slam, list[str]]:
     return slam, reasons
 
 
-SEED_MAPPER = {"mapper": "colmap", "initializer.window_overlap": 0.0}
-"""COLMAP's mapper with a fixed initialization window (the ``seed`` preset's; the default before issue 39)."""
+SEED_MAPPER = {"mapper": "colmap", "initializer.window_overlap": 0.0, "ba.outlier_chi2": 0.0, "ba.local_passes": 1}
+"""COLMAP's mapper with a fixed initialization window and COLMAP's BA filter (the ``seed`` preset's; the default
+before issue 39)."""
 
 
 @pytest.fixture(scope="module", params=["local", "colmap"])

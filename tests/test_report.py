@@ -14,6 +14,7 @@ import pytest
 from slamkit import SlamkitError, Trajectory, write_tum
 from slamkit.cli import main
 from slamkit.eval.report import evaluate_run
+from slamkit.io.run_dir import write_manifest
 
 
 def _helix(n: int = 120) -> Trajectory:
@@ -48,6 +49,7 @@ def _fake_run(folder: Path, noise_m: float, seed: int = 0) -> tuple[Path, np.nda
                "points3D": 1000, "points_per_image": 300.0, "mean_reprojection_error_px": 0.5, "fps": 10.0,
                "wall_time_s": 12.0, "timings_s": {"features": 4.0, "track": 5.0, "ba": 2.0, "map": 1.0}}
     (folder / "summary.json").write_text(json.dumps(summary))
+    write_manifest(folder)  # a slamkit run folder: eval writes its report only into one (or where --out says)
     return folder, noise
 
 
@@ -93,6 +95,7 @@ def test_gt_argument_and_errors(tmp_path, capsys):
         evaluate_run(tmp_path / "missing")
     # too few poses to align: the message says so
     write_tum(run / "trajectory_tum.txt", Trajectory(np.array([0.0, 1 / 30]), np.tile(np.eye(4), (2, 1, 1))))
+    write_manifest(run)  # as saved so (an edited file is refused before it is read)
     with pytest.raises(SlamkitError, match="need at least 3"):
         evaluate_run(run, gt=gt)
 

@@ -257,7 +257,7 @@ def test_bad_calibration_settings_are_named(tmp_path):
 
 def test_the_cli_says_the_camera_is_estimated_on_its_first_line(tmp_path, capsys):
     folder = _folder(tmp_path, 3)
-    assert main(["run", str(folder), "--out", str(tmp_path / "out"), "-q"]) in (0, 1)
+    assert main(["run", str(folder), "--out", str(tmp_path / "out"), "-q"]) in (0, 1, 3)  # 3 frames: a map or none (exit 3)
     err = capsys.readouterr().err
     assert "estimating the camera from the first 3 frames" in err
     assert "camera fx=" in err and "estimated" in err

@@ -152,6 +152,9 @@ def test_street_drive_at_1_m_per_frame_is_tracked_end_to_end(preset):
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.5                 # metres over 100 m
 
 
+OLD_DEFAULT = {"initializer.window_overlap": 0.0, "ba.outlier_chi2": 0.0, "ba.local_passes": 1}
+"""With ``mapper="colmap"``: the default before issue 39 (a fixed initialization window, COLMAP's BA filter)."""
+
 STREET_1_5 = "synthetic:street-drive?frames=100&speed=1.5&noise=1&seed=1"
 """1.5 m per frame, a start where the default initialization loses the map (seeds 0 and 2 pass)."""
 
@@ -171,8 +174,7 @@ def test_street_drive_at_1_5_m_per_frame_with_colmaps_mapper_and_a_short_initial
     """COLMAP's triangulator with a fixed 20-frame window (the old default) loses the same street; with 8
     initialization frames (12 m of driving) its map is made early enough: measured 100 % posed in one segment,
     ATE 0.42 m over 150 m."""
-    src, slam = _track(STREET_1_5, SlamConfig().with_overrides(mapper="colmap", init_frames=8,
-                                                               **{"initializer.window_overlap": 0.0}))
+    src, slam = _track(STREET_1_5, SlamConfig().with_overrides(mapper="colmap", init_frames=8, **OLD_DEFAULT))
     assert slam.summary()["fraction_posed"] >= 0.98 and len(slam.segments) == 1
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 1.5
 
@@ -295,7 +297,7 @@ def test_corridor_fast_walk_with_a_fixed_initialization_window():
     """A long room walked at 3 m/s (0.1 m per frame at 30 fps) with a fixed 20-frame initialization window and
     COLMAP's mapper (the ``seed`` preset's, the default before issue 39)."""
     src, slam = _track("synthetic:corridor-walk?frames=60&speed=0.1&noise=1",
-                       SlamConfig().with_overrides(mapper="colmap", **{"initializer.window_overlap": 0.0}))
+                       SlamConfig().with_overrides(mapper="colmap", **OLD_DEFAULT))
     assert slam.summary()["fraction_posed"] >= 0.98 and len(slam.segments) == 1
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.05
 

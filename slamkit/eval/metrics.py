@@ -28,12 +28,13 @@ import numpy as np
 
 from ..errors import AssociationError, ConfigError, check_type
 from ..geometry import invert_pose, rotation_angle_deg
-from ..io.trajectory import read_trajectory
 from ..types import Trajectory
 from .align import Alignment, estimate_alignment
 from .associate import associate
+from .pairing import load_pair
 
-__all__ = ["ErrorStats", "AteResult", "RpeResult", "ate", "rpe", "evaluate", "MIN_MATCHED"]
+__all__ = ["ErrorStats", "AteResult", "RpeResult", "ate", "rpe", "evaluate", "matched_warning", "MIN_MATCHED",
+           "MIN_MATCHED_FRACTION"]
 
 #: fewer matched poses than this raise AssociationError (Umeyama needs 3)
 MIN_MATCHED = 3
@@ -318,29 +319,44 @@ def rpe(gt: Trajectory, est: Trajectory, delta: float = 1, unit: str = "frames",
     return _rpe(_match_and_align(gt, est, align, max_dt, offset), delta, unit, all_pairs)
 
 
-def _load(x: Trajectory | str | os.PathLike, name: str) -> tuple[Trajectory, str | None]:
-    if isinstance(x, Trajectory):
-        return x, None
-    check_type(x, (str, os.PathLike), name, "give a Trajectory or the path of a TUM or KITTI file")
-    return read_trajectory(x), str(Path(x))
+MIN_MATCHED_FRACTION = 0.5
+"""An evaluation that matches fewer than this fraction of the estimate's poses to ground truth is not a
+measure of the run: :func:`matched_warning` says so and ``slamkit eval`` exits with a non-zero code."""
+
+
+def matched_warning(ate_dict: dict, est_name: str = "the estimate") -> str | None:
+    """The warning for an ATE (``AteResult.to_dict()``) that matched fewer than :data:`MIN_MATCHED_FRACTION`
+    of the estimate's poses to ground truth, else None."""
+    n, m = ate_dict.get("estimate_poses") or 0, ate_dict.get("matched") or 0
+    if n and m < MIN_MATCHED_FRACTION * n:
+        return (f"only {m} of {n} poses of {est_name} ({100 * m / n:.0f} %) matched ground truth: the ATE is not "
+                "a measure of the run (another sequence, another clock, or a --max-dt too small?)")
+    return None
 
 
 def evaluate(est: Trajectory | str | os.PathLike, gt: Trajectory | str | os.PathLike, *, align: str = "sim3",
-             max_dt: float = 0.02, offset: float = 0.0, rpe_delta: float = 1, rpe_unit: str = "frames") -> dict:
+             max_dt: float = 0.02, offset: float = 0.0, rpe_delta: float = 1, rpe_unit: str = "frames",
+             frames=None) -> dict:
     """One-call evaluation for the CLI and notebooks: ATE, RPE and counts as a JSON-serialisable dict.
 
-    ``est`` and ``gt`` are Trajectories or paths of TUM/KITTI files (see ``read_trajectory``). Keys:
-    ``ate`` (stats in metres), ``rpe`` (``translation`` metres, ``rotation_deg``), ``matched``,
-    ``estimate_poses``, ``ground_truth_poses``, the matched fractions, ``alignment`` and the settings.
+    ``est`` and ``gt`` are Trajectories or paths of TUM/KITTI files. A KITTI file has no timestamps: it is
+    paired by frame index (:func:`slamkit.eval.pairing.load_pair`; ``frames``, a
+    :class:`~slamkit.eval.pairing.FrameTable`, defaults to the run folder holding ``est``), never read as
+    times 0, 1, 2 s. Keys: ``ate`` (stats in metres), ``rpe`` (``translation`` metres, ``rotation_deg``),
+    ``matched``, ``estimate_poses``, ``ground_truth_poses``, the matched fractions, ``alignment``, the
+    settings, ``pairing`` ("time", "frame index" or "line"), ``notes`` and ``warnings`` (fewer than half of
+    the estimate matched: :func:`matched_warning`).
     """
-    est_traj, est_path = _load(est, "est")
-    gt_traj, gt_path = _load(gt, "gt")
-    m = _match_and_align(gt_traj, est_traj, align, max_dt, offset)
+    for x, name in ((est, "est"), (gt, "gt")):
+        if not isinstance(x, Trajectory):
+            check_type(x, (str, os.PathLike), name, "give a Trajectory or the path of a TUM or KITTI file")
+    pair = load_pair(est, gt, frames=frames)
+    m = _match_and_align(pair.gt, pair.est, align, max_dt, offset)
     a = _ate(m)
     r = _rpe(m, rpe_delta, rpe_unit, False)
-    return {
-        "estimate": est_path,
-        "ground_truth": gt_path,
+    result = {
+        "estimate": None if isinstance(est, Trajectory) else str(Path(est)),
+        "ground_truth": None if isinstance(gt, Trajectory) else str(Path(gt)),
         "ate": a.stats.to_dict(),
         "rpe": r.to_dict(),
         "matched": a.n_matched,
@@ -352,4 +368,9 @@ def evaluate(est: Trajectory | str | os.PathLike, gt: Trajectory | str | os.Path
         "alignment": a.alignment.to_dict(),
         "max_dt": float(max_dt),
         "offset": float(offset),
+        "pairing": pair.method,
+        "notes": pair.notes,
     }
+    warning = matched_warning(result, result["estimate"] or "the estimate")
+    result["warnings"] = [warning] if warning else []
+    return result

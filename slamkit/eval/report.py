@@ -20,18 +20,29 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SessionError, SlamkitError
-from ..io import atomic_write_text, read_trajectory
-from ..io.trajectory import check_input_file
+from ..errors import OutputError, SessionError, SlamkitError, shown
+from ..io import atomic_dir, atomic_write_text
+from ..io.run_dir import REPORT_MARKER, RUN_MARKER, check_output, is_run_folder, out_dir_lock
 from ..io.saved import check_json, check_run
+from ..io.trajectory import check_input_file, read_tum
 from ..types import Trajectory
-from .metrics import ate, rpe
+from .metrics import ate, matched_warning, rpe
+from .pairing import load_pair, read_frame_table
 
 __all__ = ["evaluate_run"]
 
 
-def _read(path: Path) -> Trajectory:
-    return read_trajectory(path)
+REPORT_FILES = ("report.md", "report.html", "evaluation.json", "map.html")
+PLOT_FILES = frozenset({"trajectory.png", "error_over_time.png", "timings.png"})
+_MD_MARK = "<!-- slamkit eval report -->"
+_HTML_MARK = '<meta name="generator" content="slamkit eval">'
+_MAP_MARK = "<!-- slamkit eval map -->"
+_OWN_CONTENT = {  # what makes a file slamkit's: its marker, or the text of a report an older slamkit wrote
+    "report.md": (_MD_MARK, "(Umeyama on the matched camera centres), timestamps matched within"),
+    "report.html": (_HTML_MARK, "<title>slamkit evaluation</title>"),
+    "evaluation.json": ('"generator": "slamkit eval"', '"alignment": "sim3"'),
+    "map.html": (_MAP_MARK, "slamkit map"),
+}
 
 
 def _stats(gt: Trajectory, est: Trajectory, max_dt: float) -> tuple[dict, object, object]:
@@ -45,32 +56,42 @@ def _stats(gt: Trajectory, est: Trajectory, max_dt: float) -> tuple[dict, object
 
 
 def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None, *, max_dt: float = 0.02,
-                 plots: bool = True, map_view: bool = True) -> dict:
+                 plots: bool = True, map_view: bool = True, out: str | os.PathLike | None = None) -> dict:
     """ATE and RPE (Sim(3) alignment, evo's conventions; metres / degrees) of ``RUN/trajectory_tum.txt``
-    over all frames and of ``RUN/keyframes_tum.txt`` over keyframes, against ``gt`` (TUM or KITTI file;
-    default ``RUN/groundtruth_tum.txt``); writes the report (see the module docstring) and returns the
-    numbers with the paths written. SlamkitError naming the file when the run folder, its trajectory or
-    the ground truth is missing or too short to align."""
+    over all frames and of ``RUN/keyframes_tum.txt`` over keyframes, against ``gt`` (TUM or KITTI file, a
+    KITTI file paired by frame index: :mod:`slamkit.eval.pairing`; default ``RUN/groundtruth_tum.txt``);
+    writes the report (see the module docstring) and returns the numbers with the paths written.
+
+    The report goes into ``run_dir`` only when it is a slamkit run folder, and replaces a report file there
+    only when slamkit wrote it (its marker); elsewhere (another tool's results) ``out`` must say where: a new
+    or empty folder, or an earlier report folder (``.slamkit-report``), replaced atomically. OutputError
+    before any work otherwise. SlamkitError naming the file when the run folder, its trajectory or the
+    ground truth is missing or too short to align."""
     run = Path(run_dir)
     traj_path, gt_path = _run_inputs(run, gt)
+    dest = _report_destination(run, out)
     # what is read is checked first against the run's manifest and formats (a damaged sparse/ model would
     # otherwise hang pycolmap's reader in the map view)
-    check_run(run, ("trajectory_tum.txt", "keyframes_tum.txt", "groundtruth_tum.txt", "summary.json",
-                    *(("sparse",) if map_view else ())))
-    est, gt_traj = _read(traj_path), _read(gt_path)
+    check_run(run, ("trajectory_tum.txt", "keyframes_tum.txt", "summary.json", "frames.csv",
+                    *(("groundtruth_tum.txt",) if gt is None else ()), *(("sparse",) if map_view else ())))
+    pair = load_pair(traj_path, gt_path, frames=read_frame_table(run))
+    est, gt_traj = pair.est, pair.gt
     summary = _summary(run)
     all_frames, a, r = _stats(gt_traj, est, max_dt)
     kf_path = run / "keyframes_tum.txt"
     keyframes, kf_traj = None, None
     if kf_path.exists():
-        kf_traj = _read(kf_path)
+        kf_traj = read_tum(kf_path)
         try:
             keyframes = _stats(gt_traj, kf_traj, max_dt)[0]
         except SlamkitError as e:
             keyframes = {"error": str(e)}
+    warning = matched_warning(all_frames["ate"], str(traj_path))
     result = {
+        "generator": "slamkit eval",
         "run": str(run), "estimate": str(traj_path), "ground_truth": str(gt_path), "alignment": "sim3",
-        "max_dt": max_dt, "all_frames": all_frames, "keyframes": keyframes,
+        "max_dt": max_dt, "pairing": pair.method, "notes": pair.notes, "warnings": [warning] if warning else [],
+        "all_frames": all_frames, "keyframes": keyframes,
         "frames": summary.get("frames"), "frames_posed": summary.get("frames_posed"),
         "fraction_posed": summary.get("fraction_posed"), "num_keyframes": summary.get("keyframes"),
         "points3D": summary.get("points3D"), "points_per_image": summary.get("points_per_image"),
@@ -79,15 +100,71 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
         "timings_s": summary.get("timings_s", {}),
         "camera": summary.get("camera"),
     }
-    files = _plots(run, summary, est, gt_traj, kf_traj, a, r, result["timings_s"]) if plots else {}
-    if map_view:
-        files["map"] = _map_view(run)
-    result["files"] = {k: str(Path(v).relative_to(run)) for k, v in files.items() if v is not None}
-    atomic_write_text(run / "evaluation.json", json.dumps(result, indent=2, default=_json_default))
-    md, page = _report(result, run)
-    result["report_md"] = str(atomic_write_text(run / "report.md", md))
-    result["report_html"] = str(atomic_write_text(run / "report.html", page))
+    if dest == run:
+        _write_report(run, run, result, summary, est, gt_traj, kf_traj, a, r, plots, map_view)
+    else:
+        with out_dir_lock(dest, flag="out", what="report folder"):
+            with atomic_dir(dest, overwrite=(dest / REPORT_MARKER).is_file()) as tmp:
+                (tmp / REPORT_MARKER).write_text(f"slamkit eval report of {shown(run.resolve())}\n")
+                _write_report(run, tmp, result, summary, est, gt_traj, kf_traj, a, r, plots, map_view)
+        for key in ("report_md", "report_html"):
+            result[key] = str(dest / Path(result[key]).name)
     return result
+
+
+def _write_report(run: Path, dest: Path, result: dict, summary: dict, est: Trajectory, gt_traj: Trajectory,
+                  kf_traj: Trajectory | None, a, r, plots: bool, map_view: bool) -> None:
+    files = _plots(dest, summary, est, gt_traj, kf_traj, a, r, result["timings_s"]) if plots else {}
+    if map_view:
+        files["map"] = _map_view(run, dest)
+    result["files"] = {k: str(Path(v).relative_to(dest)) for k, v in files.items() if v is not None}
+    atomic_write_text(dest / "evaluation.json", json.dumps(result, indent=2, default=_json_default))
+    md, page = _report(result, run, dest)
+    result["report_md"] = str(atomic_write_text(dest / "report.md", md))
+    result["report_html"] = str(atomic_write_text(dest / "report.html", page))
+
+
+def _report_destination(run: Path, out: str | os.PathLike | None) -> Path:
+    """Where the report may be written (see :func:`evaluate_run`); OutputError naming the path otherwise."""
+    own = is_run_folder(run)
+    if out is not None and own and os.path.realpath(out) == os.path.realpath(run):
+        out = None
+    if out is None:
+        if not own:
+            raise OutputError(f"{run}: not a slamkit run folder (no {RUN_MARKER}), so slamkit eval writes nothing "
+                              "into it (its report.md and plots/ may be another tool's): pass --out DIR (out=) for "
+                              "the report, or --json-only for the numbers alone")
+        _check_own_report_files(run)
+        return run
+    dest = check_output(out, "report", [], flag="--out")
+    if os.path.realpath(dest) in (os.path.realpath(p) for p in (run, *run.resolve().parents)):
+        raise OutputError(f"--out {dest}: would replace the folder of the run {run}; give a new folder")
+    return dest
+
+
+def _check_own_report_files(run: Path) -> None:
+    """OutputError naming the first report file (or ``plots/`` entry) in run folder ``run`` that slamkit did
+    not write: it is never replaced."""
+    for name in REPORT_FILES:
+        path = run / name
+        if not (path.exists() or path.is_symlink()):
+            continue
+        text = ""
+        if path.is_file() and not path.is_symlink():
+            with open(path, "rb") as f:
+                text = f.read(1 << 20).decode("utf-8", "replace")
+        if not any(mark in text for mark in _OWN_CONTENT[name]):
+            raise OutputError(f"{path}: not a report slamkit wrote (no slamkit marker), so it is kept and nothing "
+                              "was written: move it away, or pass --out DIR for the report")
+    plots = run / "plots"
+    if plots.is_symlink() or (plots.exists() and not plots.is_dir()):
+        raise OutputError(f"{plots}: not a folder slamkit wrote; it is kept: move it away, or pass --out DIR")
+    if plots.is_dir():
+        other = sorted(n for n in os.listdir(plots) if n not in PLOT_FILES or not (plots / n).is_file()
+                       or (plots / n).is_symlink())
+        if other:
+            raise OutputError(f"{plots}: holds {', '.join(other[:3])}, which slamkit eval did not write, so nothing "
+                              "was written: move them away, or pass --out DIR for the report")
 
 
 def _run_inputs(run: Path, gt: str | os.PathLike | None) -> tuple[Path, Path]:
@@ -130,16 +207,16 @@ def _summary(run: Path) -> dict:
     return summary
 
 
-def _plots(run: Path, summary: dict, est: Trajectory, gt_traj: Trajectory, kf_traj: Trajectory | None, a, r,
+def _plots(dest: Path, summary: dict, est: Trajectory, gt_traj: Trajectory, kf_traj: Trajectory | None, a, r,
            timings: dict) -> dict[str, str | None]:
     """The report's figures under ``run/plots``: trajectory views, error over time, timings."""
     from . import plots as P  # matplotlib only when plotting: the core imports no UI
 
     files: dict[str, str | None] = {}
-    pdir = run / "plots"
+    pdir = dest / "plots"
     aligned = a.alignment.apply(est.subset(a.idx_est))
     gt_m = gt_traj.subset(a.idx_gt)
-    title = str(summary.get("source", run.name))
+    title = str(summary.get("source", dest.name))
     files["trajectory"] = P.plot_trajectory_views(gt_m.positions, aligned.positions, a.errors,
                                                   pdir / "trajectory.png", title=title,
                                                   gt_full_xyz=gt_traj.positions)
@@ -159,8 +236,9 @@ def _json_default(x):
     raise TypeError(type(x).__name__)
 
 
-def _map_view(run: Path) -> Path | None:
-    """``RUN/map.html`` from MapView (a local meshcat server, no browser), or None when that fails."""
+def _map_view(run: Path, dest: Path) -> Path | None:
+    """``DEST/map.html`` from MapView of run ``run`` (a local meshcat server, no browser), or None when that
+    fails."""
     if not (run / "sparse").exists():
         return None
     view = None
@@ -169,7 +247,7 @@ def _map_view(run: Path) -> Path | None:
 
         view = MapView()
         view.load_run(run)
-        return view.export_html(run / "map.html")
+        return atomic_write_text(dest / "map.html", view.static_html() + f"\n{_MAP_MARK}\n")
     except Exception:  # noqa: BLE001 - the viewer is optional: the report links points.ply instead
         return None
     finally:
@@ -195,14 +273,18 @@ def _row(name: str, part: dict | None) -> str:
             f"| – | scale {a['alignment'].get('scale', float('nan')):.4g} |")
 
 
-def _report(res: dict, run: Path) -> tuple[str, str]:
+def _report(res: dict, run: Path, dest: Path) -> tuple[str, str]:
     f = res["files"]
+    paired = ("timestamps matched within {} s".format(res["max_dt"]) if res.get("pairing", "time") == "time"
+              else f"paired by {res['pairing']}")
     lines = [f"# Evaluation of `{run.name}`", "",
              f"Estimate `{Path(res['estimate']).name}` against `{res['ground_truth']}`; Sim(3) alignment "
-             f"(Umeyama on the matched camera centres), timestamps matched within {res['max_dt']} s.", "",
-             "| poses | matched | ATE RMSE [cm] | mean | median | max | RPE (1 frame) RMSE | note |",
-             "|---|---|---|---|---|---|---|---|",
-             _row("all frames", res["all_frames"]), _row("keyframes", res["keyframes"]), ""]
+             f"(Umeyama on the matched camera centres), {paired}.", ""]
+    for text in [f"Note: {n}" for n in res.get("notes", [])] + [f"**Warning**: {w}" for w in res.get("warnings", [])]:
+        lines += [text, ""]
+    lines += ["| poses | matched | ATE RMSE [cm] | mean | median | max | RPE (1 frame) RMSE | note |",
+              "|---|---|---|---|---|---|---|---|",
+              _row("all frames", res["all_frames"]), _row("keyframes", res["keyframes"]), ""]
     if res.get("frames") is not None:
         lines += ["| frames | posed | keyframes | 3D points | points / image | reprojection error [px] | frames/s |",
                   "|---|---|---|---|---|---|---|",
@@ -221,7 +303,10 @@ def _report(res: dict, run: Path) -> tuple[str, str]:
     if "map" in f:
         lines += [f"[Open the static 3D map view]({f['map']}) (self-contained HTML, works offline).", ""]
     if (run / "points.ply").exists():
-        lines += ["Point cloud: [points.ply](points.ply) (MeshLab, CloudCompare); COLMAP model in `sparse/`.", ""]
+        ply = ("points.ply" if dest == run else
+               Path(os.path.relpath(run.resolve() / "points.ply", dest.resolve())).as_posix())
+        lines += [f"Point cloud: [points.ply]({ply}) (MeshLab, CloudCompare); COLMAP model in `sparse/`.", ""]
+    lines += [_MD_MARK, ""]
     md = "\n".join(lines)
     return md, _html(md, f)
 
@@ -240,6 +325,8 @@ def _html(md: str, files: dict) -> str:
             table.clear()
 
     for line in md.splitlines():
+        if line == _MD_MARK:
+            continue
         if line.startswith("|"):
             table.append(line)
             continue
@@ -263,4 +350,5 @@ def _html(md: str, files: dict) -> str:
              "table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #ccc;padding:4px 8px;text-align:right}"
              "img{max-width:100%}code{background:#f4f4f4;padding:0 3px}")
     return ("<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>slamkit evaluation</title>"
+            f"{_HTML_MARK}"
             f"<style>{style}</style></head><body>\n" + "\n".join(body) + "\n</body></html>\n")

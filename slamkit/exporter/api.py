@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from ..config import SlamConfig
-from ..errors import ConfigError, OutputError, SlamkitError
+from ..errors import ConfigError, OutputError, SlamkitError, shown
 from ..features import create_extractor
 from ..io.atomic import atomic_dir
 from ..io.run_dir import EXPORT_MARKER, check_output, out_dir_lock
 from ..sources.base import FrameSource
 from .camera import ExportCamera
-from .images import ProgressCallback, file_name, read_gray, reopen_source, write_image
+from .images import ProgressCallback, check_unchanged, file_name, read_gray, reopen_source, write_image
 from .model import PointDescriptors, build_model, keyframe_descriptors, match_frame, select_frames
 from .nerfstudio import PLY_NAME, write_ply, write_transforms
 from .runfolder import PosedFrame, SavedRun, load_run
@@ -114,10 +114,11 @@ def _export(run_dir: Path, out: Path, format: str, frames: str, undistort: bool 
     selected = select_frames(run.frames, frames)
     src = reopen_source(run, source)
     _check_out(out, run_dir, src)
+    check_unchanged(run, src, selected)  # the images the run posed, or nothing is written
     camera = ExportCamera.create(run.camera, bool(undistort))
     names = {f.index: file_name(run, src, f, camera) for f in selected}
     with atomic_dir(out, overwrite=(out / MARKER).is_file()) as tmp:  # _check_out allowed it
-        (tmp / MARKER).write_text(f"slamkit export of {run_dir.resolve()}\n")
+        (tmp / MARKER).write_text(f"slamkit export of {shown(run_dir.resolve())}\n")
         extra = _write_images(run, src, selected, camera, tmp / "images", names, progress)
         rec = build_model(run.model, selected, camera, names, extra)
         if format == "colmap":

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from ..errors import OutputError, SlamkitError
+from ..io.fingerprint import changed, frame_file
 from ..io.run_dir import source_paths
 from ..sources import open_source
 from ..sources.base import FrameSource, ImageListSource
@@ -48,15 +49,38 @@ def source_position(run: SavedRun, source: FrameSource, frame: PosedFrame) -> in
     i = frame.index * int(run.config.frame_skip)
     if not 0 <= i < len(source) or int(source.frame_ids[i]) != frame.frame_id:
         if run.source_frames is not None and run.source_frames != len(source):
-            where = next(iter(source_paths(source)), None)
-            raise SlamkitError(f"{run.path}: its source {getattr(source, 'name', '?')!r}"
-                               f"{f' ({where})' if where else ''} has {len(source)} frames now but had "
-                               f"{run.source_frames} when the run was made: images were deleted, added or moved "
-                               f"since (dataset frame {frame.frame_id} is not where it was); restore them, or "
-                               "pass the source the run used (source=)")
+            raise _count_changed(run, source, f"dataset frame {frame.frame_id} is not where it was")
         raise SlamkitError(f"{run.path}: frame {frame.index} (dataset frame {frame.frame_id}) is not frame {i} of "
                            f"the source {getattr(source, 'name', '?')!r}: is it the source the run was made on?")
     return i
+
+
+def _count_changed(run: SavedRun, source: FrameSource, detail: str) -> SlamkitError:
+    where = next(iter(source_paths(source)), None)
+    return SlamkitError(f"{run.path}: its source {getattr(source, 'name', '?')!r}{f' ({where})' if where else ''} has "
+                        f"{len(source)} frames now but had {run.source_frames} when the run was made: images were "
+                        f"deleted, added or moved since ({detail}); restore them, or pass the source the run used "
+                        "(source=)")
+
+
+def check_unchanged(run: SavedRun, source: FrameSource, frames: list[PosedFrame]) -> None:
+    """SlamkitError naming the first of ``frames`` whose file is not the one the run read (missing, another
+    size, other bytes: :func:`slamkit.io.fingerprint.changed`): the source changed after the run, and its
+    poses would go with other images. Frames of a run saved before fingerprints were recorded pass."""
+    checked: set = set()
+    for f in frames:
+        i = source_position(run, source, f)
+        key = (str(frame_file(source, i)), f.fingerprint.get("sha256"))
+        if key in checked:  # a video: one file for every frame
+            continue
+        checked.add(key)
+        why = changed(f.fingerprint, source, i)
+        if why and run.source_frames is not None and run.source_frames != len(source):
+            raise _count_changed(run, source, f"frame {f.index}: {why}")
+        if why:
+            raise SlamkitError(f"{run.path}: frame {f.index} (dataset frame {f.frame_id}) is not the image the run "
+                               f"posed: {why}; the source changed after the run, so nothing was exported — restore "
+                               "its images, or run again on the source as it is now")
 
 
 def file_name(run: SavedRun, source: FrameSource, frame: PosedFrame, camera: ExportCamera) -> str:
@@ -83,8 +107,14 @@ def write_image(run: SavedRun, source: FrameSource, frame: PosedFrame, camera: E
         return None
     decoded = source[source_position(run, source, frame)]
     rgb = camera.undistort_image(decoded.color)
-    if not cv2.imwrite(str(out), cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR)):
-        raise OutputError(f"{out}: image cannot be written")
+    # encoded by OpenCV, written by Python: OpenCV's writer crashes on a name that is not UTF-8
+    ok, png = cv2.imencode(out.suffix or ".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    try:
+        if not ok:
+            raise OSError("the image cannot be encoded")
+        out.write_bytes(png.tobytes())
+    except OSError as e:
+        raise OutputError(f"{out}: image cannot be written ({e.strerror or e})") from None
     return decoded
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +21,7 @@ import pycolmap
 from ..camera import Intrinsics
 from ..config import SlamConfig, is_camera_path
 from ..errors import FormatError, SlamkitError
+from ..io.fingerprint import FINGERPRINT_COLUMNS
 from ..io.saved import check_run
 from ..io.trajectory import read_tum
 from ..sources.calibration import CAMERA_TXT, camera_from_path
@@ -42,9 +43,10 @@ class RunFolderError(SlamkitError):
 class PosedFrame:
     """One posed frame of a saved run.
 
-    index: the frame's index in the source (model images are named ``frame_{index:06d}``); frame_id: its
-    number in the dataset; timestamp: seconds; world_from_cam: (4, 4) camera-to-world from
-    ``trajectory_tum.txt``; image_id: its image in the run's model when it is a keyframe, else -1.
+    index: the frame's index in the source (model images are named ``frame_{index:06d}``); frame_id: its number
+    in the dataset; fingerprint: what the run recorded of its file (:mod:`slamkit.io.fingerprint`); timestamp:
+    seconds; world_from_cam: (4, 4) camera-to-world from ``trajectory_tum.txt``; image_id: its image in the
+    run's model when it is a keyframe, else -1.
     """
 
     index: int
@@ -52,6 +54,8 @@ class PosedFrame:
     timestamp: float
     world_from_cam: np.ndarray
     image_id: int = -1
+    fingerprint: dict = field(default_factory=dict)
+    """The file, size and SHA-256 the run recorded for the frame (``frames.csv``; empty for older runs)."""
 
     @property
     def name(self) -> str:
@@ -154,7 +158,8 @@ def _posed_frames(run_dir: Path, model: pycolmap.Reconstruction, main_segment) -
         r = rows[k]
         index = int(r["index"])
         frames.append(PosedFrame(index, int(r["frame_id"]), float(t), pose,
-                                 by_name.get(f"frame_{index:06d}", -1)))
+                                 by_name.get(f"frame_{index:06d}", -1),
+                                 {c: r.get(c) or "" for c in FINGERPRINT_COLUMNS}))
     missing = set(by_name.values()) - {f.image_id for f in frames}
     if missing:
         raise RunFolderError(f"{run_dir / 'sparse'}: {len(missing)} keyframes have no pose in trajectory_tum.txt")

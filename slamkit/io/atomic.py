@@ -6,8 +6,10 @@ rename, the temporary file is removed and the old file (if any) is left untouche
 permissions of the file it replaces, or ``0o666 & ~umask`` when it is new (``mkstemp`` would give ``0o600``).
 
 A folder is written the same way with :func:`atomic_dir`: the caller fills a temporary sibling folder, which
-then takes the place of the old one. Replacing a non-empty folder takes two renames (old -> backup, new ->
-target), so there is an instant in which the target does not exist, but never one in which it is partial.
+then takes the place of the old one. The temporary folder, and the folder the old one is moved into, hold
+slamkit's marker (:data:`slamkit.io.run_dir.TEMP_MARKER`), so a later clean-up removes only folders slamkit
+made. Replacing a non-empty folder takes two renames (old -> backup, new -> target), so there is an instant in
+which the target does not exist, but never one in which it is partial.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from pathlib import Path
 
 from ..errors import OutputError
 from ..interrupt import signals_blocked
-from .run_dir import is_replaceable
+from .run_dir import TEMP_MARKER, is_replaceable, mark_temporary, not_a_regular_file
 
 __all__ = ["atomic_write_text", "atomic_write_bytes", "atomic_dir"]
 
@@ -68,6 +70,9 @@ def _atomic_write(path: str | os.PathLike, chunks: Iterable[bytes]) -> Path:
     parent = _prepare_parent(path)
     if path.is_dir():
         raise OutputError(f"{path}: is a folder, cannot be replaced by a file")
+    kind = not_a_regular_file(path)
+    if kind:
+        raise OutputError(f"{path}: is {kind}; slamkit replaces only regular files, so it was left as it is")
     mode = _new_file_mode(path)
     try:
         fd, tmp_name = tempfile.mkstemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -140,6 +145,11 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp"))
     except OSError as e:
         raise OutputError(f"{parent}: output folder is not writable ({e.strerror or e})") from e
+    try:
+        mark_temporary(tmp, path)  # only a folder holding this marker is ever removed as a stale temporary
+    except OSError as e:
+        _remove_tree(tmp)
+        raise OutputError(write_failure(path, e, 0, path.exists(), "folder")) from None
     existed = path.exists()
     try:
         yield tmp
@@ -211,7 +221,10 @@ def _commit(tmp: Path, path: Path, parent: Path) -> Path | None:
         with signals_blocked():
             if path.exists():
                 backup = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".old"))
+                mark_temporary(backup, path)
                 os.replace(path, backup / path.name)
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp / TEMP_MARKER)  # the folder becomes the output: no longer a temporary
             os.replace(tmp, path)
     except BaseException as e:
         note = ""

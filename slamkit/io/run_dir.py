@@ -12,6 +12,10 @@ keeps two processes from writing one folder at once.
 - **``out_dir_lock``**: an exclusive ``flock`` on ``PARENT/.NAME.lock`` for the whole run; a second writer
   fails at once naming the folder and the other process. The OS releases it when a process dies, so a lock
   file left by a killed process never blocks.
+- **Only what slamkit made is replaced.** The lock file begins with :data:`LOCK_MAGIC`; temporary and
+  moved-aside folders hold :data:`TEMP_MARKER`. A file or folder that only has the name of one (the user's
+  ``.NAME.lock``, ``.NAME.mine.tmp/``) is never taken, removed or overwritten; only regular files are replaced
+  (:func:`not_a_regular_file`: never a device node, FIFO or link).
 """
 
 from __future__ import annotations
@@ -23,17 +27,18 @@ import json
 import os
 import re
 import shutil
+import stat
 import tempfile
 import time
 import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
-from ..errors import OutputError
+from ..errors import OutputError, shown
 
-__all__ = ["EXPORT_MARKER", "OUTPUT_KINDS", "RUN_MARKER", "SESSION_MARKER", "check_out_dir", "check_output",
-           "is_replaceable", "out_dir_lock", "read_manifest", "remove_stale_temporaries", "source_paths",
-           "write_manifest"]
+__all__ = ["EXPORT_MARKER", "OUTPUT_KINDS", "REPORT_MARKER", "RUN_MARKER", "SESSION_MARKER", "TEMP_MARKER",
+           "check_out_dir", "check_output", "is_replaceable", "is_run_folder", "mark_temporary", "out_dir_lock",
+           "read_manifest", "remove_stale_temporaries", "source_paths", "write_manifest"]
 
 RUN_MARKER = ".slamkit-run"
 SESSION_MARKER = ".slamkit-session.json"
@@ -68,7 +73,7 @@ def write_manifest(folder: str | os.PathLike, marker: str = RUN_MARKER) -> Path:
     folder = Path(folder)
     files = {}
     for p in sorted(folder.rglob("*")):
-        if p.is_file() and p != folder / marker:
+        if p.is_file() and p != folder / marker and p.relative_to(folder).as_posix() != TEMP_MARKER:
             files[p.relative_to(folder).as_posix()] = {"size": p.stat().st_size, "sha256": file_sha256(p)}
     meta = {"format": MANIFEST_FORMATS[marker], "version": MANIFEST_VERSION, "id": uuid.uuid4().hex,
             "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": files}
@@ -123,6 +128,17 @@ def foreign_entries(path: Path) -> list[str]:
     return names
 
 
+def is_run_folder(path: str | os.PathLike) -> bool:
+    """True when ``path`` is a folder slamkit saved a run in: its marker, or the session of a run saved
+    before markers existed. Another tool's results folder (trajectory files, a report.md) is not."""
+    path = Path(path)
+    try:
+        return (path / RUN_MARKER).is_file() or ((path / "session" / "session.json").is_file()
+                                                 and _is_session_dir(path / "session"))
+    except OSError:
+        return False
+
+
 def is_replaceable(path: str | os.PathLike) -> bool:
     """True when ``path`` is missing, an empty folder, or a folder slamkit wrote (nothing else in it)."""
     path = Path(path)
@@ -152,7 +168,25 @@ def source_paths(source) -> list[Path]:
     paths = getattr(source, "paths", None)
     if paths is not None and len(paths):
         out.extend({Path(paths[0]).parent, Path(paths[-1]).parent})
+        root = _dataset_root(str(getattr(source, "name", "")), Path(paths[0]))
+        if root is not None:
+            out.append(root)
     return out
+
+
+def _dataset_root(name: str, image: Path) -> Path | None:
+    """The dataset folder of an opened source whose images live below it (TUM's ``ROOT/rgb/``, KITTI's
+    ``SEQ/image_0/``, EuRoC's ``mav0/cam0/data/``, 7-Scenes' ``SCENE/seq-01/``): the highest folder above
+    ``image`` named like a part of the source's name (``tum/ROOT``, ``kitti/SEQ``, ``7scenes/SCENE/SEQ``), so
+    the Python API refuses ``save_run(slam, "ROOT/depth")`` as the CLI does with the spec ``ROOT``."""
+    parts = [p for p in name.split("/")[1:] if p]
+    if "/" not in name or not parts:
+        return None
+    found = None
+    for folder in list(image.parents)[:5]:
+        if folder.name in parts:
+            found = folder
+    return found
 
 
 def _resolved(p: Path) -> Path:
@@ -171,17 +205,20 @@ def _overlap(out: Path, src: Path) -> str | None:
 
 
 OUTPUT_KINDS = {"run": "slamkit run", "session": "slamkit session", "export": "slamkit export",
-                "sweep": "slamkit sweep", "file": "file"}
+                "sweep": "slamkit sweep", "report": "slamkit report", "file": "file"}
 """What each command writes: a run folder (``run``, ``save``, the notebook's Save), a session folder
-(``Slam.save_session``), an export folder, a sweep folder (``ablate``) or a single file (``gt``).
+(``Slam.save_session``), an export folder, a sweep folder (``ablate``), a report folder (``eval --out``) or a
+single file (``gt``).
 :func:`check_output` knows each kind's own outputs."""
 
 EXPORT_MARKER = ".slamkit-export"
 """File marking a folder written by :func:`slamkit.exporter.export`."""
+REPORT_MARKER = ".slamkit-report"
+"""File marking a folder that holds a report written by ``slamkit eval --out`` (replaced as a whole)."""
 SWEEP_FILE = "sweep.json"
 SWEEP_ENTRIES = re.compile(r"^(sweep\.json|runs|results\.(csv|parquet|md)|effects\.png|\..*\.tmp)$")
 
-_OWN_MARKERS = (RUN_MARKER, SESSION_MARKER, EXPORT_MARKER)
+_OWN_MARKERS = (RUN_MARKER, SESSION_MARKER, EXPORT_MARKER, REPORT_MARKER)
 
 
 def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = (), overwrite: bool = False,
@@ -231,6 +268,10 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
         if kind == "file":
             if out.is_dir():
                 raise OutputError(f"{flag} {out}: is a folder; give a file name")
+            kind_of = not_a_regular_file(out)
+            if kind_of:
+                raise OutputError(f"{flag} {out}: is {kind_of}; slamkit replaces only regular files (even with "
+                                  "--overwrite) — give a file name")
             if not overwrite:
                 raise OutputError(f"{flag} {out}: exists; nothing was written — choose another file name, or "
                                   "pass --overwrite to replace it")
@@ -260,6 +301,25 @@ def check_out_dir(out: str | os.PathLike, sources: Iterable = (), overwrite: boo
     return check_output(out, "run", sources, overwrite, flag)
 
 
+def not_a_regular_file(path: Path) -> str | None:
+    """What ``path`` is when it exists and is not a regular file ("a device node", "a FIFO", "a symbolic link
+    (to ...)", ...); None for a regular file or nothing."""
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    mode = st.st_mode
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISLNK(mode):
+        return f"a symbolic link (to {os.readlink(path)})"
+    for test, name in ((stat.S_ISCHR, "a device node"), (stat.S_ISBLK, "a device node"), (stat.S_ISFIFO, "a FIFO"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
 def _foreign(out: Path, kind: str) -> list[str]:
     """Names in folder ``out`` that are not a ``kind`` output's."""
     names = sorted(os.listdir(out))
@@ -268,8 +328,8 @@ def _foreign(out: Path, kind: str) -> list[str]:
     if kind == "session":
         own = (out / SESSION_MARKER).is_file() or _is_session_dir(out)
         return [n for n in names if not (own and SESSION_ENTRY.match(n))]
-    if kind == "export":
-        return [] if (out / EXPORT_MARKER).is_file() else names
+    if kind in ("export", "report"):
+        return [] if (out / (EXPORT_MARKER if kind == "export" else REPORT_MARKER)).is_file() else names
     if (out / SWEEP_FILE).is_file():  # a sweep: its own entries (and the user's notes beside them) are fine
         return []
     return [n for n in names if not SWEEP_ENTRIES.match(n)]
@@ -325,9 +385,51 @@ def _check_writable(parent: Path, flag: str) -> None:
 
 
 # ----------------------------------------------------------------------------------------------- lock
+LOCK_MAGIC = b"slamkit-lock "
+"""How a lock file slamkit made begins: a file of another name pattern's owner is never taken or removed."""
+
+
 def _lock_path(out: Path) -> Path:
     real = _resolved(out)
     return real.parent / f".{real.name}.lock"
+
+
+def _lock_record(pid: int) -> bytes:
+    """The lock file's content: the marker and the holder's pid, always the same length (rewritten in place,
+    so a reader never sees the file without its marker)."""
+    return LOCK_MAGIC + f"{pid:>12}\n".encode()
+
+
+def _create_lock_file(path: Path) -> None:
+    """Create ``path`` already holding the marker (a filled temporary file hard-linked to the name, so no
+    process ever sees an empty lock file); nothing when it exists."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".slamkit-lock.", suffix=".new")
+    try:
+        os.write(fd, _lock_record(os.getpid()))
+        os.close(fd)
+        fd = -1
+        try:
+            os.link(tmp, path)
+        except FileExistsError:
+            pass
+        except OSError:  # a file system without hard links: create exclusively, then fill at once
+            with contextlib.suppress(FileExistsError):
+                new = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+                try:
+                    os.write(new, _lock_record(os.getpid()))
+                finally:
+                    os.close(new)
+    finally:
+        if fd >= 0:
+            os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
+
+def _not_our_lock(flag: str, out, path: Path, what: str) -> OutputError:
+    return OutputError(f"{flag} {out}: {path} exists and is not a slamkit lock ({what}), so it is left as it is "
+                       f"and nothing was written: slamkit locks {out} under that name — move it away, or choose "
+                       "another name")
 
 
 @contextlib.contextmanager
@@ -335,8 +437,10 @@ def out_dir_lock(out: str | os.PathLike, flag: str = "--out", what: str = "run f
     """Hold an exclusive lock on run folder ``out`` (``PARENT/.NAME.lock``, ``flock``) for the block.
 
     A second holder, in this process or another, gets OutputError at once naming the folder and the pid
-    written in the lock file. The lock file is removed when the block ends. Without ``fcntl`` (Windows) the
-    block runs unlocked.
+    written in the lock file. The lock file carries slamkit's marker (:data:`LOCK_MAGIC`): a file of that name
+    without it (the user's, a FIFO, a link) is never opened for writing, taken or removed — OutputError
+    instead. The lock file is removed when the block ends. Without ``fcntl`` (Windows) the block runs
+    unlocked.
     """
     try:
         import fcntl
@@ -347,9 +451,30 @@ def out_dir_lock(out: str | os.PathLike, flag: str = "--out", what: str = "run f
     path.parent.mkdir(parents=True, exist_ok=True)
     while True:
         try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+            st = os.lstat(path)
+        except FileNotFoundError:
+            try:
+                _create_lock_file(path)
+            except OSError as e:
+                if e.errno in (errno.ENOSPC, errno.EDQUOT):
+                    kept = (f"the previous {'file' if what == 'file' else 'folder'} {out} is intact" if
+                            Path(out).exists() else f"nothing was written to {out}")
+                    raise OutputError(f"no space left on the disk of {path.parent}: not even the lock file {path.name} "
+                                      f"could be written; {kept} — free some space (or choose another disk) and run "
+                                      "the same command again") from None
+                raise OutputError(f"{flag} {out}: lock file {path} cannot be created ({e.strerror or e})") from e
+            continue
+        if not stat.S_ISREG(st.st_mode):
+            raise _not_our_lock(flag, out, path, "not a regular file")
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_NONBLOCK | getattr(os, "O_NOFOLLOW", 0))
+        except FileNotFoundError:  # removed by its holder meanwhile
+            continue
         except OSError as e:
-            raise OutputError(f"{flag} {out}: lock file {path} cannot be created ({e.strerror or e})") from e
+            raise OutputError(f"{flag} {out}: lock file {path} cannot be opened ({e.strerror or e})") from e
+        if not stat.S_ISREG(os.fstat(fd).st_mode) or os.pread(fd, len(LOCK_MAGIC), 0) != LOCK_MAGIC:
+            os.close(fd)
+            raise _not_our_lock(flag, out, path, "no slamkit marker in it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as e:
@@ -369,8 +494,7 @@ def out_dir_lock(out: str | os.PathLike, flag: str = "--out", what: str = "run f
         os.close(fd)
     try:
         with contextlib.suppress(OSError):  # the pid is a courtesy for the message; a full disk must not stop us
-            os.ftruncate(fd, 0)
-            os.write(fd, f"{os.getpid()}\n".encode())
+            os.pwrite(fd, _lock_record(os.getpid()), 0)
         yield path
     finally:
         with contextlib.suppress(OSError):
@@ -380,22 +504,51 @@ def out_dir_lock(out: str | os.PathLike, flag: str = "--out", what: str = "run f
 
 def _read_pid(fd: int) -> int | None:
     try:
-        text = os.pread(fd, 32, 0).decode().strip()
+        text = os.pread(fd, 64, 0)[len(LOCK_MAGIC):].decode().strip()
         return int(text) if text.isdigit() else None
     except (OSError, ValueError):
         return None
 
 
 # ----------------------------------------------------------------------------------------------- clean-up
+TEMP_MARKER = ".slamkit-temporary"
+"""File inside every temporary folder (``.NAME.*.tmp``) and moved-aside old folder (``.NAME.*.old``) slamkit
+makes beside an output: only folders holding it are removed or put back by :func:`remove_stale_temporaries`.
+It is removed from a temporary folder just before the folder takes the output's name."""
+_TEMP_TEXT = "slamkit temporary folder"
+
+
+def mark_temporary(folder: Path, of: Path) -> None:
+    """Write :data:`TEMP_MARKER` into ``folder``, a temporary folder slamkit just made beside ``of``."""
+    (folder / TEMP_MARKER).write_text(f"{_TEMP_TEXT} of {shown(of.name)} (pid {os.getpid()}); removed when it is done\n")
+
+
+def is_own_temporary(folder: Path) -> bool:
+    """True when ``folder`` is a real folder (no link) holding slamkit's :data:`TEMP_MARKER`."""
+    try:
+        if folder.is_symlink() or not folder.is_dir():
+            return False
+        marker = folder / TEMP_MARKER
+        if marker.is_symlink() or not marker.is_file():
+            return False
+        with open(marker, "rb") as f:
+            return f.read(len(_TEMP_TEXT)) == _TEMP_TEXT.encode()
+    except OSError:
+        return False
+
+
 def remove_stale_temporaries(out: str | os.PathLike) -> list[Path]:
     """Under the lock: remove temporary folders a killed process left beside ``out`` (``.NAME.*.tmp``), and
-    put back an old run that a crash left moved aside (``.NAME.*.old/NAME`` while ``NAME`` is missing)."""
+    put back an old run that a crash left moved aside (``.NAME.*.old/NAME`` while ``NAME`` is missing). Only
+    folders that carry slamkit's :data:`TEMP_MARKER` are touched: the user's ``.NAME.mine.tmp/`` is kept."""
     out = Path(out)
     parent, name = out.parent, out.name
     removed: list[Path] = []
     if not parent.is_dir():
         return removed
     for p in sorted(parent.glob(f".{glob_escape(name)}.*.old")):
+        if not is_own_temporary(p):
+            continue
         moved = p / name
         if moved.is_dir() and not out.exists():
             with contextlib.suppress(OSError):
@@ -403,7 +556,7 @@ def remove_stale_temporaries(out: str | os.PathLike) -> list[Path]:
         shutil.rmtree(p, ignore_errors=True)
         removed.append(p)
     for p in parent.glob(f".{glob_escape(name)}.*.tmp"):
-        if p.is_dir():
+        if is_own_temporary(p):
             shutil.rmtree(p, ignore_errors=True)
             removed.append(p)
     return removed

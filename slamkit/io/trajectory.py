@@ -30,7 +30,7 @@ from ..geometry import pose_from_rows, pose_from_tum, tum_from_pose
 from ..types import Trajectory
 from .atomic import atomic_write_text
 
-__all__ = ["read_tum", "write_tum", "read_kitti", "write_kitti", "read_trajectory"]
+__all__ = ["read_tum", "write_tum", "read_kitti", "write_kitti", "read_trajectory", "read_pose_file"]
 
 TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"
 #: a TUM quaternion whose norm is further than this from 1 is rejected (TUM rounds to 4 decimals)
@@ -46,9 +46,30 @@ PIPE_TIMEOUT = 10.0
 gives up with an error instead of blocking forever (a FIFO nobody writes to)."""
 
 
+MAX_TEXT_BYTES = 64 * 2**20
+"""bytes: the largest text file (trajectory, ground truth, times) slamkit reads: about a million TUM lines
+(hours of motion capture at 100 Hz; parsing them takes about 1 GB of memory). A larger file, or a device
+that never ends (``--gt /dev/zero``), is refused after reading at most this much."""
+
+
+def _too_large(path: Path, size: str) -> FormatError:
+    return FormatError(path, None, f"{size} is more than a trajectory file holds (at most "
+                                   f"{MAX_TEXT_BYTES // 2**20} MB are read): not a trajectory file")
+
+
+def _not_text(path: Path, data: bytes) -> None:
+    """FormatError when ``data`` (the first bytes of a text file) holds a NUL byte: a binary file or device."""
+    nul = data.find(b"\0")
+    if nul >= 0:
+        raise FormatError(path, data.count(b"\n", 0, nul) + 1, f"is not UTF-8 text (a NUL byte at byte {nul}: a binary "
+                                                               "file or a device)")
+
+
 def _read_bytes(path: Path) -> bytes:
-    """The file's bytes, read once (so a pipe works). A FIFO or pipe is read without ever blocking longer
-    than :data:`PIPE_TIMEOUT` seconds of silence; a regular file is read as usual."""
+    """The file's bytes, read once (so a pipe works) and at most :data:`MAX_TEXT_BYTES` of them. A FIFO or
+    pipe is read without ever blocking longer than :data:`PIPE_TIMEOUT` seconds of silence; a regular file
+    larger than the limit is refused before it is read; a device is read in chunks and refused as soon as it
+    sends a NUL byte (``/dev/zero``, ``/dev/urandom``) or more than the limit."""
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -57,23 +78,33 @@ def _read_bytes(path: Path) -> bytes:
         raise FormatError(path, None, f"cannot be read ({e.strerror or e})") from e
     if stat.S_ISDIR(st.st_mode):
         raise FormatError(path, None, "is a folder, not a trajectory file")
-    if not stat.S_ISFIFO(st.st_mode):
-        return path.read_bytes()
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    if stat.S_ISREG(st.st_mode) and st.st_size > MAX_TEXT_BYTES:
+        raise _too_large(path, f"{st.st_size / 2**20:.0f} MB")
+    fifo = stat.S_ISFIFO(st.st_mode)
+    fd = os.open(path, os.O_RDONLY | (os.O_NONBLOCK if fifo else 0))
     chunks: list[bytes] = []
+    total = 0
     try:
         while True:
-            ready, _, _ = select.select([fd], [], [], PIPE_TIMEOUT)
-            if not ready:
-                raise FormatError(path, None, f"a pipe that sent nothing for {PIPE_TIMEOUT:g} s (no writer?); "
-                                              "give a file, or a pipe that is being written")
+            if fifo:
+                ready, _, _ = select.select([fd], [], [], PIPE_TIMEOUT)
+                if not ready:
+                    raise FormatError(path, None, f"a pipe that sent nothing for {PIPE_TIMEOUT:g} s (no writer?); "
+                                                  "give a file, or a pipe that is being written")
             try:
                 chunk = os.read(fd, 1 << 16)
             except BlockingIOError:
                 continue
             if not chunk:
                 return b"".join(chunks)
+            if not chunks:
+                _not_text(path, chunk)
+            elif b"\0" in chunk:
+                _not_text(path, b"".join(chunks) + chunk)
             chunks.append(chunk)
+            total += len(chunk)
+            if total > MAX_TEXT_BYTES:
+                raise _too_large(path, "it sent more than that")
     finally:
         os.close(fd)
 
@@ -274,24 +305,43 @@ def write_kitti(path: str | os.PathLike, traj: Trajectory) -> Path:
 
 # ---------------------------------------------------------------------------------------------- either
 
-def read_trajectory(path: str | os.PathLike,
-                    timestamps: np.ndarray | Sequence[float] | str | os.PathLike | None = None) -> Trajectory:
-    """Read a TUM (8 values per line) or KITTI (12 values per line) file, told apart by the first data line.
-
-    ``timestamps`` is used for KITTI files only (see :func:`read_kitti`). FormatError when the file has no
-    data line or the first one has another number of values.
-    """
-    path = Path(path)
+def _detect(path: Path) -> tuple[str, list[bytes]]:
+    """("tum" | "kitti", the file's lines), told apart by the first data line; the file is read once."""
     text = _read_lines(path)  # once: a pipe cannot be read twice
     first = next(_data_rows(path, text), None)
     if first is None:
         raise FormatError(path, None, "has no poses (no data lines)")
     lineno, tokens = first
     if len(tokens) == 8:
+        return "tum", text
+    if len(tokens) == 12:
+        return "kitti", text
+    raise FormatError(path, lineno, f"{len(tokens)} values: expected 8 (TUM: timestamp tx ty tz qx qy qz qw) "
+                                    "or 12 (KITTI: row-major 3x4 pose)")
+
+
+def read_pose_file(path: str | os.PathLike) -> tuple[str, Trajectory]:
+    """Read a TUM or KITTI pose file, told apart by its first data line: ``("tum", trajectory)`` with the
+    file's timestamps, or ``("kitti", trajectory)`` whose timestamps are the line indices 0, 1, 2, ... (a
+    KITTI file has none: :mod:`slamkit.eval.pairing` pairs it by frame index). The file is read once.
+    FormatError when it has no data line or the first one has another number of values."""
+    path = Path(path)
+    kind, text = _detect(path)
+    return kind, (read_tum(path, text) if kind == "tum" else read_kitti(path, None, text))
+
+
+def read_trajectory(path: str | os.PathLike,
+                    timestamps: np.ndarray | Sequence[float] | str | os.PathLike | None = None) -> Trajectory:
+    """Read a TUM (8 values per line) or KITTI (12 values per line) file, told apart by the first data line.
+
+    ``timestamps`` is used for KITTI files only (see :func:`read_kitti`; without it a KITTI file's timestamps
+    are its line indices, which :func:`slamkit.eval.evaluate` never takes for seconds). FormatError when the
+    file has no data line or the first one has another number of values.
+    """
+    path = Path(path)
+    kind, text = _detect(path)
+    if kind == "tum":
         if timestamps is not None:
             raise ConfigError(f"timestamps: given, but {path} is a TUM file with its own timestamps")
         return read_tum(path, text)
-    if len(tokens) == 12:
-        return read_kitti(path, timestamps, text)
-    raise FormatError(path, lineno, f"{len(tokens)} values: expected 8 (TUM: timestamp tx ty tz qx qy qz qw) "
-                                    "or 12 (KITTI: row-major 3x4 pose)")
+    return read_kitti(path, timestamps, text)

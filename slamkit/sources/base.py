@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from ..camera import Intrinsics
-from ..errors import ConfigError, ImageReadError, SourceError
+from ..errors import ConfigError, ImageReadError, SourceError, shown
 from ..types import Frame, Trajectory
 
 
@@ -146,24 +146,78 @@ def decoder_messages_named(path: Path) -> Iterator[None]:
                 text = tmp.read().decode("utf-8", "replace")
                 if text:
                     lines = text.splitlines(keepends=True)
-                    out = "".join(f"slamkit: {path}: {ln.rstrip()}\n" if _DECODER_MESSAGE.search(ln) else ln
-                                  for ln in lines)
+                    out = "".join(f"slamkit: {shown(path)}: {ln.rstrip()}\n" if _DECODER_MESSAGE.search(ln)
+                                  else ln for ln in lines)
                     with contextlib.suppress(OSError):
-                        os.write(2, out.encode())
+                        os.write(2, out.encode("utf-8", "backslashreplace"))
+
+
+MAX_IMAGE_BYTES = 2**30
+"""Largest image file read (bytes): the file is read whole before it is decoded."""
 
 
 def read_image(path: Path) -> np.ndarray:
-    """Decode an image file with OpenCV; :class:`ImageReadError` names the file when it fails."""
+    """Decode an image file; :class:`ImageReadError` names the file when it fails.
+
+    The bytes are read by Python and decoded from memory (``cv2.imdecode``): a file name reaches the OS only,
+    never OpenCV, whatever bytes it holds (OpenCV's own reader crashes on names that are not UTF-8).
+    """
+    path = Path(path)
     if not path.is_file():
-        raise ImageReadError(path, "file does not exist")
+        raise ImageReadError(path, "is not a regular file" if os.path.exists(path) else "file does not exist")
+    try:
+        size = path.stat().st_size
+        if size > MAX_IMAGE_BYTES:
+            raise ImageReadError(path, f"is {size / 2**30:.1f} GiB, larger than any image slamkit reads "
+                                       f"({MAX_IMAGE_BYTES / 2**30:g} GiB)")
+        data = np.fromfile(path, dtype=np.uint8)
+    except (OSError, ValueError) as e:
+        raise ImageReadError(path, f"cannot be read ({getattr(e, 'strerror', None) or e})") from None
+    if data.size == 0:
+        raise ImageReadError(path, "is empty (0 bytes)")
     try:
         with decoder_messages_named(path):
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     except cv2.error as e:  # pragma: no cover - OpenCV raises only for exotic files
         raise ImageReadError(path, f"could not be decoded ({e})") from None
     if image is None or image.size == 0:
         raise ImageReadError(path)
     return image
+
+
+@contextlib.contextmanager
+def plain_name(path: Path) -> Iterator[str]:
+    """A name for ``path`` that OpenCV and FFmpeg take as a plain file, whatever bytes the real name holds
+    (not UTF-8, ``%`` patterns, a ``protocol:`` prefix): a symbolic link with an ASCII name in a private
+    temporary folder, removed on exit (open the file inside the ``with``; an open file stays readable).
+    Where no link can be made, the real name when it is plain ASCII, else :class:`SourceError` naming it."""
+    target = os.path.abspath(path)
+    suffix = path.suffix if path.suffix.isascii() and path.suffix[1:].isalnum() else ""
+    folder = link = None
+    try:
+        folder = tempfile.mkdtemp(prefix="slamkit-name-")
+        link = os.path.join(folder, "input" + suffix)
+        os.symlink(target, link)
+    except OSError:
+        _remove_link(folder, link)
+        folder = None
+    if folder is None:
+        if target.isascii() and target.isprintable() and "%" not in target and ":" not in target:
+            yield target
+            return
+        raise SourceError(f"{shown(path)}: its name cannot be passed to the video decoder and no temporary link "
+                          "to it can be made; rename the file (plain letters and digits)")
+    try:
+        yield link
+    finally:
+        _remove_link(folder, link)
+
+
+def _remove_link(folder: str | None, link: str | None) -> None:
+    for remove, name in ((os.unlink, link), (os.rmdir, folder)):
+        if name is not None:
+            with contextlib.suppress(OSError):
+                remove(name)
 
 
 @dataclass
@@ -178,6 +232,7 @@ class ImageListSource(FrameSource):
     gt_poses: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        self.name = shown(self.name)  # printable whatever bytes the folder names hold
         self.paths = [Path(p) for p in self.paths]
         self.timestamps = np.asarray(self.timestamps, dtype=np.float64)
         self.frame_ids = np.asarray(self.frame_ids, dtype=np.int64)

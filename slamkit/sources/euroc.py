@@ -30,7 +30,7 @@ from ..geometry import pose_from_tum
 from .base import ImageListSource, select
 from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, resolve_camera
-from .groundtruth import associate_nearest
+from .groundtruth import associate_nearest, check_quaternions
 from .textfiles import check_finite, check_increasing, parse_rows, require_path, to_float, to_int, to_str
 
 
@@ -156,9 +156,7 @@ def read_euroc_groundtruth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     check_increasing(path, t_ns, lines)
     values = np.asarray([r[1:] for r in rows], dtype=np.float64).reshape(len(rows), 7)
     check_finite(path, values, lines)
-    bad = np.linalg.norm(values[:, 3:7], axis=1) < 1e-6
-    if bad.any():
-        raise FormatError(path, int(lines[np.argmax(bad)]), "quaternion (q_w q_x q_y q_z) has zero norm")
+    check_quaternions(path, values[:, 3:7], lines, "q_w q_x q_y q_z")
     if len(rows) == 0:
         return t_ns, np.zeros((0, 4, 4))
     q_xyzw = values[:, [4, 5, 6, 3]]

@@ -1,7 +1,8 @@
 """A folder of images (any camera), plus the image-listing helpers every layout shares.
 
-Files are taken in *natural* order (``frame2`` before ``frame10``). Opening reads no pixel: the image size
-comes from the PNG/JPEG header of the first file (a full decode only for other formats).
+Files are taken in time order when their names are numbers (``0.05.png 0.1.png 0.15.png``: timestamps as
+names, decimals included), else in *natural* order (``frame2`` before ``frame10``). Opening reads no pixel:
+the image size comes from the PNG/JPEG header of the first file (a full decode only for other formats).
 """
 
 from __future__ import annotations
@@ -38,13 +39,31 @@ def natural_sorted(paths: Iterable[Path]) -> list[Path]:
     return sorted(paths, key=lambda p: natural_key(p.name))
 
 
+_NUMBERED = re.compile(r"^(.*?)(\d+(?:\.\d+)?)$")
+
+
+def time_sorted(paths: Iterable[Path]) -> list[Path]:
+    """``paths`` in the order of the numbers their names hold when every name is one prefix (possibly
+    empty) followed by a decimal number (``0.05.png``, ``frame_1305031453.359684.jpg``: timestamps as names,
+    ``0.1`` before ``0.15`` before ``0.2``), with :func:`natural_key` between equal numbers; otherwise
+    :func:`natural_sorted` (which orders integer numbers the same way)."""
+    paths = list(paths)
+    numbered = [_NUMBERED.match(p.name[: len(p.name) - len(p.suffix)] if p.suffix else p.name) for p in paths]
+    if (paths and all(m is not None for m in numbered) and len({m.group(1) for m in numbered}) == 1
+            and any("." in m.group(2) for m in numbered)):
+        order = sorted(range(len(paths)), key=lambda k: (float(numbered[k].group(2)), natural_key(paths[k].name)))
+        return [paths[k] for k in order]
+    return natural_sorted(paths)
+
+
 def has_glob(text: str) -> bool:
     return any(c in _GLOB_CHARS for c in text)
 
 
 def list_images(folder: str | Path, pattern: str | None = None,
                 extensions: Iterable[str] = IMAGE_EXTENSIONS) -> list[Path]:
-    """Image files of ``folder`` in natural order (not recursive).
+    """Image files of ``folder`` in time order (:func:`time_sorted`: numbers as names, decimals included),
+    else natural order (not recursive).
 
     With ``pattern`` (a glob relative to ``folder``, e.g. ``"left_*.png"``) every matching file is taken;
     otherwise files whose extension is in ``extensions`` (case-insensitive). An empty result raises
@@ -60,7 +79,7 @@ def list_images(folder: str | Path, pattern: str | None = None,
         files = [p for p in folder.iterdir() if p.suffix.lower() in exts and p.is_file()]
         if not files:
             raise SourceError(f"no images in {folder} (looked for files ending in {', '.join(exts)})")
-    return natural_sorted(files)
+    return time_sorted(files)
 
 
 def _png_size(head: bytes) -> tuple[int, int] | None:
@@ -125,7 +144,8 @@ def resolve_camera(camera: Intrinsics | float | str | None, width: int, height: 
     ``camera`` may be an :class:`Intrinsics` (must be for that size: CalibrationError otherwise), a focal
     length in pixels (principal point at the centre, no distortion), a camera text as ``--camera`` takes
     it (``"F"``, ``"FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]"``, :meth:`Intrinsics.parse`), or None for ``default``
-    when given, else ``Intrinsics.from_focal(width, height)`` (focal 1.2 x max(width, height)).
+    when given, else ``Intrinsics.from_focal(width, height)`` (focal 1.2 x max(width, height)). Distortion
+    that no lens produces over the image is refused (:meth:`Intrinsics.check_distortion`).
     """
     if camera is None:
         camera = default if default is not None else Intrinsics.from_focal(width, height)
@@ -138,6 +158,7 @@ def resolve_camera(camera: Intrinsics | float | str | None, width: int, height: 
     if (camera.width, camera.height) != (int(width), int(height)):
         raise CalibrationError(f"{where}: images are {width}x{height} but the intrinsics are for "
                                f"{camera.width}x{camera.height}")
+    camera.check_distortion(where)
     return camera
 
 
@@ -158,7 +179,8 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | str | None = N
 
     Args:
         path: the folder. Images are files with an extension of :data:`IMAGE_EXTENSIONS`, or the files
-            matching ``pattern``, in natural order.
+            matching ``pattern``, in the order of :func:`list_images` (time order for names that are numbers,
+            else natural order).
         camera: :class:`Intrinsics`, a focal length in pixels, a ``--camera`` text, or None: then the
             folder's ``camera.txt`` when there is one (:mod:`~slamkit.sources.calibration`), else **a
             guess**: ``Intrinsics.from_focal(w, h)`` (focal 1.2 x max(w, h), principal point at the centre,

@@ -13,19 +13,56 @@ from ..geometry import pose_from_tum
 from .textfiles import parse_float_rows
 
 
+ROTATION_TOLERANCE = 1e-2
+"""Largest error of a ground-truth rotation: max |R^T R - I| of a matrix, | |q| - 1 | of a quaternion (files
+round to 4-6 decimals: errors of 1e-4; a larger one is a file in another format, or columns in another order)."""
+
+
+def check_rotations(path: str | Path, R: np.ndarray, lines: np.ndarray, what: str = "pose") -> None:
+    """FormatError naming the first line whose (3, 3) rotation in ``R`` (N, 3, 3) is not a rotation:
+    not orthonormal within :data:`ROTATION_TOLERANCE`, or a reflection (determinant -1)."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    if len(R) == 0:
+        return
+    with np.errstate(all="ignore"):
+        error = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(R)
+    bad = ~(error <= ROTATION_TOLERANCE) | ~(det > 0)
+    if bad.any():
+        k = int(np.argmax(bad))
+        kind = "a reflection (determinant -1)" if error[k] <= ROTATION_TOLERANCE else \
+            f"not orthonormal (|R^T R - I| up to {error[k]:.3g}, determinant {det[k]:.4g})"
+        raise FormatError(path, int(lines[k]), f"the {what}'s rotation is not a rotation: {kind}; is the file "
+                                               "in this format, its numbers in this order?")
+
+
+def check_quaternions(path: str | Path, q: np.ndarray, lines: np.ndarray, names: str = "qx qy qz qw") -> None:
+    """FormatError naming the first line whose quaternion (N, 4) has a norm other than 1 (within
+    :data:`ROTATION_TOLERANCE`): not a rotation, or columns in another order."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    if len(q) == 0:
+        return
+    with np.errstate(all="ignore"):
+        norm = np.linalg.norm(q, axis=1)
+    bad = ~(np.abs(norm - 1) <= ROTATION_TOLERANCE)
+    if bad.any():
+        k = int(np.argmax(bad))
+        what = "has zero norm" if norm[k] < 1e-6 else f"has norm {norm[k]:.6g}, not 1: not a rotation"
+        raise FormatError(path, int(lines[k]), f"quaternion ({names}) {what}; is the file in this format, its "
+                                               "numbers in this order?")
+
+
 def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """A TUM trajectory file -> (timestamps (N,) float64 s, poses (N, 4, 4) float64).
 
     Lines are ``timestamp tx ty tz qx qy qz qw`` (camera-to-world, quaternion normalised here); values must
-    be finite, quaternions non-zero and timestamps strictly increasing (FormatError naming the line).
+    be finite, quaternions of norm 1 (within :data:`ROTATION_TOLERANCE`) and timestamps strictly increasing
+    (FormatError naming the line).
     """
     path = Path(path)
     rows, lines = parse_float_rows(path, 8, increasing=0, return_lines=True,
                                    what=("timestamp", "tx", "ty", "tz", "qx", "qy", "qz", "qw"))
-    norms = np.linalg.norm(rows[:, 4:8], axis=1)
-    bad = norms < 1e-6
-    if bad.any():
-        raise FormatError(path, int(lines[np.argmax(bad)]), "quaternion (qx qy qz qw) has zero norm")
+    check_quaternions(path, rows[:, 4:8], lines)
     if len(rows) == 0:
         return np.zeros(0), np.zeros((0, 4, 4))
     return rows[:, 0].copy(), pose_from_tum(rows[:, 1:4], rows[:, 4:8])

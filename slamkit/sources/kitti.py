@@ -24,13 +24,14 @@ from ..geometry import pose_from_rows
 from .base import ImageListSource, select
 from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, list_images, resolve_camera
+from .groundtruth import check_rotations
 from .textfiles import parse_float_rows, parse_keyed_rows, require_path
 
 
 def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
     """``calib.txt`` -> ``{"P0": (3, 4) float64, ...}``: the ``P*`` keys as 3x4 matrices, others as read.
 
-    A ``P*`` line without 12 numbers raises FormatError; a non-finite number CalibrationError.
+    A ``P*`` line without 12 numbers raises FormatError; a non-finite number CalibrationError naming the line.
     """
     path = Path(path)
     out: dict[str, np.ndarray] = {}
@@ -44,6 +45,24 @@ def read_kitti_calib(path: str | Path) -> dict[str, np.ndarray]:
         else:
             out[key] = values
     return out
+
+
+def check_projection(path: Path, line: int, key: str, P: np.ndarray) -> None:
+    """CalibrationError naming the file and line unless the 3x4 projection matrix ``P`` is ``K [I | t]`` with
+    ``K`` a pinhole matrix (no skew: P[0, 1] = 0; P[1, 0] = P[2, 0] = P[2, 1] = 0, P[2, 2] = 1), the form of
+    KITTI's rectified cameras. Anything else (skew, a rotation) cannot be read as fx, fy, cx, cy without
+    losing part of it."""
+    scale = max(abs(P[0, 0]), abs(P[1, 1]), 1.0)
+    problems = []
+    if abs(P[0, 1]) > 1e-6 * scale:
+        problems.append(f"skew P[0,1]={P[0, 1]:g} (slamkit's camera model has none)")
+    if abs(P[1, 0]) > 1e-6 * scale or abs(P[2, 0]) > 1e-6 or abs(P[2, 1]) > 1e-6 or abs(P[2, 2] - 1) > 1e-6:
+        problems.append("its left 3x3 is not an upper-triangular K with K[2,2] = 1 (rows "
+                        f"[{P[1, 0]:g} {P[1, 1]:g} {P[1, 2]:g}], [{P[2, 0]:g} {P[2, 1]:g} {P[2, 2]:g}])")
+    if problems:
+        raise CalibrationError(f"{path}:{line}: {key} is not the projection matrix of a rectified pinhole camera "
+                               f"K [I | t]: {'; '.join(problems)}; give the intrinsics with --camera "
+                               "fx,fy,cx,cy (Python: camera=Intrinsics(...)) if you know them")
 
 
 def kitti_intrinsics(P: np.ndarray, width: int, height: int, where: str = "calib.txt") -> Intrinsics:
@@ -63,8 +82,12 @@ def read_kitti_times(path: str | Path) -> np.ndarray:
 
 
 def read_kitti_poses(path: str | Path) -> np.ndarray:
-    """``poses/NN.txt`` -> (N, 4, 4) float64 camera-to-world (12 finite numbers per line, row-major 3x4)."""
-    return pose_from_rows(parse_float_rows(path, 12))
+    """``poses/NN.txt`` -> (N, 4, 4) float64 camera-to-world (12 finite numbers per line, row-major 3x4, the
+    left 3x3 a rotation: FormatError naming the line otherwise)."""
+    rows, lines = parse_float_rows(path, 12, return_lines=True)
+    poses = pose_from_rows(rows)
+    check_rotations(path, poses[:, :3, :3], lines)
+    return poses
 
 
 def _sequence_folder(root: Path, sequence: str | int | None) -> tuple[Path, Path | None]:
@@ -128,6 +151,7 @@ def open_kitti(path: str | Path, *, sequence: str | int | None = None, camera_in
     if key not in calib:
         raise FormatError(calib_file, None, f"no '{key}:' line (the projection matrix of image_{camera_index})")
     P = calib[key]
+    check_projection(calib_file, parse_keyed_rows(calib_file)[key][0], key, P)
     times_file = require_path(folder / "times.txt", "KITTI timestamps")
     times = read_kitti_times(times_file)
     if len(times) != len(files):

@@ -24,6 +24,7 @@ from ..errors import CalibrationError, ConfigError, FormatError, SourceError
 from .base import ImageListSource, select
 from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, natural_sorted, resolve_camera
+from .groundtruth import ROTATION_TOLERANCE, check_rotations
 from .textfiles import convert_fields, data_lines, parse_rows, require_path, to_float
 
 SEVENSCENES_NOMINAL = (585.0, 585.0, 320.0, 240.0)
@@ -48,8 +49,8 @@ def read_number_rows(path: str | Path) -> tuple[list[list[float]], np.ndarray]:
 def read_pose_matrix(path: str | Path) -> np.ndarray:
     """A 7-Scenes ``frame-NNNNNN.pose.txt`` -> (4, 4) float64 camera-to-world.
 
-    Four lines of four numbers (FormatError naming the line otherwise). A pose with inf or NaN (tracking
-    lost in the original recording) is returned as all-NaN.
+    Four lines of four numbers, a rotation in the upper left 3x3 and ``0 0 0 1`` last (FormatError naming the
+    line otherwise). A pose with inf or NaN (tracking lost in the original recording) is returned as all-NaN.
     """
     path = Path(path)
     rows, lines = parse_rows(path, [to_float] * 4)
@@ -59,6 +60,10 @@ def read_pose_matrix(path: str | Path) -> np.ndarray:
     T = np.asarray(rows, dtype=np.float64)
     if not np.isfinite(T).all():
         return np.full((4, 4), np.nan)
+    check_rotations(path, T[:3, :3], lines[:1])
+    if np.abs(T[3] - [0, 0, 0, 1]).max() > ROTATION_TOLERANCE:
+        last = " ".join(f"{v:g}" for v in T[3])
+        raise FormatError(path, int(lines[3]), f"the last row of a pose is 0 0 0 1, not {last}")
     return T
 
 

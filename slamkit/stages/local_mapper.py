@@ -38,7 +38,7 @@ import pycolmap
 from ..errors import ConfigError
 from ..features import FrameFeatures, MatchingConfig, guided_match
 from ..features.epipolar import epipolar_match
-from ..map import SlamMap, rigid_from_matrix, shared_observations
+from ..map import SlamMap, keypoint_scales, rigid_from_matrix, shared_observations
 from ..results import MappingResult
 from ..state import RecentPoints
 
@@ -129,16 +129,6 @@ class LocalMappingResult(MappingResult):
     """Duplicated points merged."""
     observations_added: int = 0
     """Observations fusion added to existing points."""
-
-
-def keypoint_scales(features) -> np.ndarray:
-    """(N,) scale of each keypoint: its size over the smallest size in the image (ORB: 1.2^octave); ones
-    without sizes."""
-    sizes = features.sizes
-    if sizes is None or len(sizes) == 0:
-        return np.ones(len(features))
-    s = np.asarray(sizes, np.float64)
-    return s / max(float(s[s > 0].min()) if (s > 0).any() else 1.0, 1e-9)
 
 
 def _pose(m) -> np.ndarray:
