@@ -299,7 +299,8 @@ def _check_saved_without_kernel(browser, page, lab, saved: Path, final: dict) ->
 
 
 TWIN_JS = """() => Array.from(document.querySelectorAll('.jp-OutputArea-output img, .output_png img, img'))
-    .filter(i => i.src.startsWith('data:image/png') && i.naturalWidth > 0).map(i => [i.naturalWidth, i.naturalHeight])"""
+    .filter(i => i.src.startsWith('data:image/png') && i.naturalWidth > 0)
+    .map(i => [i.naturalWidth, i.naturalHeight])"""
 """Width and height of every PNG image shown (the app's static twin among them)."""
 
 

@@ -16,8 +16,11 @@ and sends the result (:mod:`.sender`) as objects built by :mod:`.scene`:
 
 The map is shown in a display frame (x right, y forward, z up of the first keyframe's camera) centred and
 scaled so it spans about six units (one ``set_transform`` of the root), refitted when the map outgrows it
-or is normalized (only the frustums are re-sent then); "Reset camera" refits it and puts the viewer's
-camera back behind and above the first keyframe.
+or is normalized (only the frustums are re-sent then). The view follows the camera: when the current frame or
+the newest keyframe nears the viewer's edge (:data:`FOLLOW_BOX`), it refits and puts the viewer's camera home
+again (above the path, looking at the map's centre); "Reset camera" does the same at once. Points are coloured
+by their height (or in their image colours: ``ViewSettings.color_by``); the legend, under the viewer, lists
+only what the view draws.
 """
 
 from __future__ import annotations
@@ -74,8 +77,8 @@ LEGEND = {
     "points-height": ("linear-gradient(90deg,{})".format(",".join(_css(c / 255) for c in HEIGHT_STOPS)),
                       "points by height: low → high"),
     "points-image": ("linear-gradient(90deg,#b08060,#6080b0,#c0c0a0)", "points in their image colours"),
-    "keyframes": ("linear-gradient(90deg,{},{},{})".format(*(_css(c) for c in recency_colors(np.array([0.0, 0.5, 1.0])))),
-                  "keyframes and path: first → last"),
+    "keyframes": ("linear-gradient(90deg,{},{},{})".format(
+        *(_css(c) for c in recency_colors(np.array([0.0, 0.5, 1.0])))), "keyframes and path: first → last"),
     "current": (_css(CURRENT_COLOR), "current frame"),
     "track": (_css(TRACK_COLOR), "selected track"),
     "loops": (_css(LOOP_COLOR), "loop closure"),
@@ -240,7 +243,8 @@ class MapView:
                f'style="width:100%;height:100%;border:none">{inner}</object></div>')
         if not legend:
             return box
-        return f'<div>{box}<div style="max-width:{width}px;padding:2px 0">{legend_html(self.legend_items())}</div></div>'
+        legend_box = f'<div style="max-width:{width}px;padding:2px 0">{legend_html(self.legend_items())}</div>'
+        return f"<div>{box}{legend_box}</div>"
 
     def legend_items(self) -> list[str]:
         """The legend entries (keys of :data:`LEGEND`) of what this view draws with its settings: the

@@ -113,8 +113,9 @@ def app_text(app: "SlamApp") -> str:
     lines = [f"status: {app.status_text or 'ready'}"]
     if app.result is not None:
         lines.append(f"last step: {describe_step(app.result)}")
+    err_s = "–" if np.isnan(err) else f"{err:.2f} px"
     lines.append(f"frames {n['frames']} of {n['frames_total']} · keyframes {n['keyframes']} · points {n['points']}"
-                 f" · mean reprojection error {'–' if np.isnan(err) else f'{err:.2f} px'} · lost frames {n['lost']}")
+                 f" · mean reprojection error {err_s} · lost frames {n['lost']}")
     return "\n".join(lines)
 
 
