@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import json
 import os
 import re
 import signal
@@ -161,7 +162,8 @@ def run(tmp_path_factory):
     stats = []
 
     def record(s, r):
-        stats.append((r.is_keyframe or r.status == "initialized", view.stats.mode, view.objects_sent_total))
+        stats.append((r.is_keyframe or r.status == "initialized", view.stats.mode, view.objects_sent_total,
+                      view.reframes, view.newest_on_screen()))
 
     local_map = None
     slam.callbacks.append(view.on_step)
@@ -236,11 +238,34 @@ def test_map_view_scene_matches_the_map(run):
 
 def test_updates_are_incremental_during_the_run(run):
     stats = run["stats"]
-    assert all(mode == "full" for kf, mode, _ in stats if kf)  # a small map is read whole (exact)
-    # non-keyframe steps send no object (the current frame only moves: set_transform)
-    sent = np.diff([0] + [total for _, _, total in stats])
-    kf = np.array([k for k, _, _ in stats])
-    assert (sent[~kf] == 0).all() and (sent[kf] > 0).all()
+    assert all(s[1] == "full" for s in stats if s[0])  # a small map is read whole (exact)
+    # non-keyframe steps send no object (the current frame only moves: set_transform), unless the view
+    # reframed to follow the camera
+    sent = np.diff([0] + [s[2] for s in stats])
+    reframed = np.diff([0] + [s[3] for s in stats]) > 0
+    kf = np.array([s[0] for s in stats])
+    assert (sent[~kf & ~reframed] == 0).all() and (sent[kf] > 0).all()
+    assert 1 <= reframed.sum() <= 0.25 * len(stats)  # it followed the camera, a few times, not every frame
+
+
+def test_the_view_follows_the_camera(run):
+    """After every step the current frame, the newest keyframe and the newest path frame are inside the
+    middle of the viewer as its camera was last set (the legend is under the viewer, never over it);
+    without following, the camera of this run leaves the view."""
+    from slamkit.viz.meshcat_view import FOLLOW_BOX
+
+    on_screen = [s[4] for s in run["stats"] if len(s[4])]
+    assert len(on_screen) >= 30
+    worst = max(float(np.abs(ndc).max()) for ndc in on_screen)
+    assert worst <= FOLLOW_BOX, worst
+    slam = Slam(open_source("default"), SlamConfig().with_overrides(**FAST))
+    still = MapView(server=run["view"].server, name="still")
+    still.follow = False
+    slam.callbacks.append(still.on_step)
+    while not slam.done:
+        slam.step()
+    assert float(np.abs(still.newest_on_screen()).max()) > 1.0  # the camera left the view it was framed in
+    assert 'class="slamkit-legend"' in still.iframe_html() and "position:absolute;bottom" not in still.iframe_html()
 
 
 def test_frame_view_draws_the_tracked_matches_the_result_carries(run):
@@ -502,8 +527,18 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert app.f_cur.value[:2] == b"\xff\xd8" and app.f_kf.value[:2] == b"\xff\xd8"
         assert "keyframe image id" in app.f_kf_label.value
         assert app.step() is None and "the run is finished" in app.status_text  # Step at the end says so
+        # the static twin (what a notebook saved without widget state shows): a picture and the status
+        from slamkit.viz.static_twin import app_picture, app_text
+        assert app_picture(app)[:8] == b"\x89PNG\r\n\x1a\n"
+        twin = app_text(app)
+        assert twin.startswith("status: the run is finished") and (
+            f"frames 24 of 24 · keyframes {app.slam.slam_map.num_keyframes} · points {app.slam.slam_map.num_points}"
+            in twin), twin
         # the finished map is also frozen in the app's view: a saved notebook shows it without a kernel
-        assert 'class="slamkit-snapshot"' in app.map_html.value and "slamkit-legend" in app.map_html.value
+        assert 'class="slamkit-snapshot"' in app.map_html.value and "slamkit-legend" in app.v_legend.value
+        # the legend lists what is drawn: no track or loop closure here, points by height
+        assert "points by height" in app.v_legend.value and "loop closure" not in app.v_legend.value
+        assert "selected track" not in app.v_legend.value
         assert app.m_image.layout.display == "none"  # no broken-image icon before a picture is drawn
         kfs = sorted(app.slam.slam_map.keyframes)
         assert (app.m_kf1.value, app.m_kf2.value) == (kfs[-2], kfs[-1])  # the latest two keyframes
@@ -528,6 +563,17 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert "showing the saved run" in app.w_status.value and "<" not in app.status_text
         page = app.export_html().read_text()
         assert "<title>slamkit map: " in page and "MeshCat</title>" not in page and "slamkit-caption" in page
+        # Save again: the map.html just exported into the run folder survives it (byte for byte), and a
+        # folder holding a file that is not a run's is refused with the reason, nothing deleted
+        first_id = json.loads((saved / ".slamkit-run").read_text())["id"]
+        assert app.save() == saved and (saved / "map.html").read_text() == page
+        assert json.loads((saved / ".slamkit-run").read_text())["id"] != first_id  # a new save, not a no-op
+        assert "kept map.html" in app.status_text and not list(saved.parent.glob(".out.kept-*"))
+        (saved / "notes.txt").write_text("mine")
+        app.b_save.click()
+        assert "not empty and is not a slamkit run" in app.status_text, app.status_text
+        assert (saved / "notes.txt").read_text() == "mine" and (saved / "map.html").read_text() == page
+        (saved / "notes.txt").unlink()
         # Export dataset: every posed frame of the main segment, its image beside the model
         ds = app.export_dataset("colmap")
         rec = pycolmap.Reconstruction(str(ds / "sparse" / "0"))

@@ -37,9 +37,11 @@ from ..sources import open_source
 from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
-from .explain import camera_html, flow_help_html, scale_html
-from .meshcat_view import MapView
+from .explain import camera_html, flow_help_html, legend_html, scale_html
+from .kept_files import keeping_unsaved_files
+from .meshcat_view import MapView, legend_html as view_legend_html
 from .settings import ViewSettings
+from .static_twin import StaticTwin
 
 DEFAULT_SOURCE = "default"
 """The embedded synthetic sequence (exact ground truth)."""
@@ -73,8 +75,11 @@ class SlamApp(AppWidgets):
         """The keyframe pair of "Draw matches" follows the latest two keyframes (until the user picks one)."""
         self.last_error: str | None = None
         """The traceback of the last error shown in the status line."""
+        self.twin = StaticTwin(self, min_interval=5.0)
+        """The plain outputs under the widgets (a picture and the status text) that a saved notebook keeps."""
+        self._hooked = None
         self._build_widgets(self.slam.config, self.source_spec, len(self.slam.source), out_dir, self.view.settings,
-                            self.view.iframe_html(self.map_height))
+                            self.view.iframe_html(self.map_height, legend=False))
         self._connect()
         self._refresh_all()
 
@@ -104,11 +109,12 @@ class SlamApp(AppWidgets):
         for w in (self.w_max, self.w_init, self.w_flow, self.w_matches, self.w_features):
             w.observe(lambda _: self._show_pending(), "value")
         for w in (self.v_bg, self.v_path, self.v_kf, self.v_cur, self.v_pts, self.v_dirs, self.v_fscale,
-                  self.v_psize, self.v_track, self.v_clip_on, self.v_clip):
+                  self.v_psize, self.v_track, self.v_clip_on, self.v_clip, self.v_color):
             w.observe(lambda _: self._guard(self._apply_view_settings), "value")
 
     def _guard(self, fn, *args):
-        """Run a widget action; show errors in the status line instead of losing them in the kernel log."""
+        """Run a widget action; show errors in the status line instead of losing them in the kernel log;
+        then redraw the static twin if the action changed the app (a button press runs outside any cell)."""
         try:
             return fn(*args)
         except SlamkitError as e:
@@ -116,9 +122,30 @@ class SlamApp(AppWidgets):
         except Exception as e:  # noqa: BLE001 - shown to the user, with the traceback in the status tooltip
             self._status(f"⚠ {type(e).__name__}: {e}", "#b00020")
             self.last_error = traceback.format_exc()
+        finally:
+            if not self._running:
+                self.twin.refresh(force=True)
+
+    def _ipython_display_(self) -> None:
+        """The widgets, then their static twin (a picture and the status text: plain outputs a saved,
+        autosaved or exported notebook shows without widget state), redrawn after every cell that changed
+        the app, every button press and every few seconds of a background run."""
+        from IPython import get_ipython
+        from IPython.display import display
+
+        bundle = self.widget._repr_mimebundle_()
+        bundle["text/plain"] = ("slamkit app (its controls need the running kernel; the picture and status "
+                                "below are their static copy)")
+        display(bundle, raw=True)
+        self.twin.show()
+        ip = get_ipython()
+        if ip is not None and self._hooked is None:
+            self._hooked = lambda *_: self.twin.refresh(force=True)
+            ip.events.register("post_run_cell", self._hooked)
 
     def _status(self, text: str, color: str = "#333") -> None:
         self.status_text = text
+        self.twin.dirty = True
         self.w_status.value = f'<span style="color:{color}">{html.escape(text)}</span>'
 
     status_text: str = ""
@@ -253,6 +280,7 @@ class SlamApp(AppWidgets):
         try:
             while self._running and not self.slam.done:
                 self.step()
+                self.twin.refresh()  # at most every few seconds
                 await asyncio.sleep(0)  # the kernel handles widget messages (Pause, sliders) between frames
         except KeyboardInterrupt:  # "interrupt kernel": Slam.step finishes the frame first, so the state is whole
             self._status(f"⏸ interrupted after frame {len(self.slam.records) - 1}: the map so far is intact; Save "
@@ -265,6 +293,7 @@ class SlamApp(AppWidgets):
             self._running = False
             self._set_run_button()
             self._show_pending()
+            self.twin.refresh(force=True)
 
     def _set_run_button(self) -> None:
         if self._running:
@@ -312,7 +341,7 @@ class SlamApp(AppWidgets):
     def _show_map(self, snapshot: bool) -> None:
         """The live 3D view in the app; with ``snapshot`` it also holds the current scene frozen, which a
         saved notebook (with its widget state) shows when no kernel serves the live view."""
-        html_ = self.view.iframe_html(self.map_height, snapshot=snapshot)
+        html_ = self.view.iframe_html(self.map_height, snapshot=snapshot, legend=False)  # the legend: v_legend
         if self.map_html.value != html_:
             self.map_html.value = html_
 
@@ -327,10 +356,15 @@ class SlamApp(AppWidgets):
             self._status("done: the last global bundle adjustment ran; Save writes the map and trajectory")
 
     def save(self, out_dir: str | Path | None = None) -> Path:
-        """Save the current map and trajectory (``slam.save``) to the output folder."""
+        """Save the current map and trajectory (``slam.save``) to the output folder. Files the last save did not
+        write there (an exported ``map.html``, ``slamkit eval``'s report) are kept (:mod:`.kept_files`); a
+        folder holding other files than a run's is refused, with the reason in the status line."""
         out = Path(out_dir or self.w_out.value)
-        path = self.slam.save(out)
-        self._status(f"saved to {path} (trajectory_tum.txt, sparse/, points.ply, summary.json, session/ to resume)")
+        with keeping_unsaved_files(out) as kept:  # an earlier Export HTML (map.html) survives the save
+            path = self.slam.save(out)
+        also = f"; kept {', '.join(kept)} from before this save" if kept else ""
+        self._status(f"saved to {path} (trajectory_tum.txt, sparse/, points.ply, summary.json, session/ to "
+                     f"resume){also}")
         return path
 
     def load(self, run_dir: str | Path | None = None) -> None:
@@ -372,6 +406,13 @@ class SlamApp(AppWidgets):
     def close(self) -> None:
         """Stop a background run and the viewer's server (when this app started it)."""
         self.pause()
+        if self._hooked is not None:
+            from IPython import get_ipython
+
+            ip = get_ipython()
+            if ip is not None:
+                ip.events.unregister("post_run_cell", self._hooked)
+            self._hooked = None
         if self._own_view:
             self.view.close()
         self._close_widgets()
@@ -400,11 +441,13 @@ class SlamApp(AppWidgets):
         self._refresh_frames(result)
         self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
         self._show_pending()
+        self.twin.dirty = True
         if not self._running and not self.slam.done:
             self._status(f"stepped to frame {result.frame_index}: {result.status}"
                          + (" (keyframe)" if result.is_keyframe else ""))
 
     def _refresh_all(self) -> None:
+        self.twin.dirty = True
         self._refresh_view_controls()
         self._refresh_frames(self.slam.last_result)
         self.f_summary.value = fv.summary_html(self._summary(), self.view.scene_counts())
@@ -474,6 +517,7 @@ class SlamApp(AppWidgets):
         describe = getattr(self.slam, "describe_camera", None)
         self.w_help.value = (flow_help_html(float(camera.fx), kf.flow_threshold, kf.min_tracked_matches)
                              + (camera_html(describe()) if describe is not None else ""))
+        self.v_legend.value = legend_html(view_legend_html(self.view.legend_items()))
         sc = self.view.scale_numbers()
         self.v_units.value = (scale_html(sc["extent"], sc["frustum_depth"], sc["point_diameter"], sc["view_depth"])
                               if len(self.view.keyframe_ids) else "")
@@ -498,7 +542,8 @@ class SlamApp(AppWidgets):
         self.view.configure(background=self.v_bg.value, show_path=self.v_path.value, show_keyframes=self.v_kf.value,
                             show_current=self.v_cur.value, show_points=self.v_pts.value,
                             show_directions=self.v_dirs.value, frustum_scale=float(self.v_fscale.value),
-                            point_size=float(self.v_psize.value), track_point=track, clip=clip)
+                            point_size=float(self.v_psize.value), track_point=track, clip=clip,
+                            color_by=str(self.v_color.value))
         self.v_track_info.value = (f"lines to the {self.view.scene_counts().get('track', 0)} keyframes that see it"
                                    if track >= 0 else "")
         self._refresh_help()

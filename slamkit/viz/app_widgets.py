@@ -88,7 +88,7 @@ class AppWidgets:
         self.w_source = W.Text(value=source_spec, description="data source", style=style, layout=wide,
                                placeholder="default, or a dataset folder / video path", continuous_update=False)
         self.w_default = W.Button(description="default sequence", tooltip="the embedded synthetic sequence",
-                                  layout=W.Layout(width="140px"))
+                                  layout=W.Layout(width="160px"))
         self.w_skip = W.IntSlider(value=vals["frame_skip"], min=1, max=10, description="frame skip", style=style,
                                   layout=wide, continuous_update=False)
         self.w_max = W.IntSlider(value=vals["max_frames"], min=1, max=max(1, math.ceil(source_len / cfg.frame_skip)),
@@ -153,12 +153,14 @@ class AppWidgets:
                                   layout=vl, tooltip="the map points seen by most images, longest track first")
         self.v_track_info = W.HTML()
         self.v_clip_on = W.Checkbox(value=False, description="clip to keyframes", indent=False,
-                                    layout=W.Layout(width="140px"))
+                                    layout=W.Layout(width="160px"))
         self.v_clip = W.IntRangeSlider(value=(0, 1), min=0, max=1, description="", layout=W.Layout(width="300px"),
                                        continuous_update=False)
-        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="130px"),
+        self.b_camera = W.Button(description="Reset camera", icon="crosshairs", layout=W.Layout(width="150px"),
                                  tooltip="frame the whole map again")
         self.v_units = W.HTML()
+        self.v_color = W.Dropdown(options=[("height", "height"), ("image colours", "image")], value=vs.color_by,
+                                  description="point colour", style=vstyle, layout=vl)
         self.v_legend = W.HTML(legend_html())
 
     def _build_frame_view(self) -> None:
@@ -189,13 +191,14 @@ class AppWidgets:
             W.HBox([self.v_bg, self.b_camera]),
             W.HBox([self.v_pts, self.v_kf, self.v_path, self.v_cur, self.v_dirs]),
             W.HBox([self.v_fscale, self.v_psize]),
+            self.v_color,
             W.HBox([self.v_track, self.v_track_info]),
             W.HBox([self.v_clip_on, self.v_clip]),
-            self.v_units, self.v_legend,
+            self.v_units,
         ])
         frame = W.VBox([W.HTML("<b>last keyframe</b>"), self.f_kf, self.f_kf_label, W.HTML("<b>current frame</b>"),
                         self.f_cur], layout=W.Layout(width=f"{self.frame_width + 20}px"))
-        map_box = W.VBox([self.map_html, settings], layout=W.Layout(flex="0 1 auto", min_width="420px"))
+        map_box = W.VBox([self.map_html, self.v_legend, settings], layout=W.Layout(flex="0 1 auto", min_width="420px"))
         widget = W.VBox([
             controls,
             W.HBox([map_box, frame]),

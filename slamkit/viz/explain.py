@@ -91,22 +91,18 @@ def scale_html(extent: float, frustum_depth: float, point_diameter: float, view_
             f'trajectory is aligned to ground truth (Sim(3)).</div>')
 
 
-def legend_html() -> str:
-    """The colours of the frame view and of the 3D view."""
+def legend_html(view_legend: str = "") -> str:
+    """The colours of the frame view, followed by ``view_legend`` (the 3D view's legend of what it draws,
+    ``meshcat_view.legend_html(view.legend_items())``)."""
     def sw(color: str, shape: str = "line") -> str:
         style = ("display:inline-block;width:18px;height:3px;vertical-align:middle;" if shape == "line" else
                  "display:inline-block;width:8px;height:8px;border-radius:4px;vertical-align:middle;")
         return f'<span style="{style}background:{color}"></span>'
 
-    grad = ('<span style="display:inline-block;width:40px;height:8px;vertical-align:middle;'
-            'background:linear-gradient(to right,#0c0,#ee0,#e00)"></span>')
     return (f'<div class="slamkit-legend" style="color:#444;font-size:90%;max-width:640px">'
+            f'<b>3D view</b>: {view_legend}'
             f'<b>frames</b>: {sw("rgb(40,200,40)")} flow line from a tracked point\'s position in the last '
-            f'keyframe to the current frame, {sw("rgb(230,30,30)", "dot")} its current position. '
-            f'<b>3D view</b>: points in their image colours; keyframe frustums and camera path by time '
-            f'{grad} first &rarr; last; {sw("rgb(26,115,255)")} current frame; {sw("rgb(230,0,230)")} '
-            f'selected track (lines to the keyframes that observe the point); {sw("rgb(0,190,215)")} loop closed '
-            f'(the two keyframes that recognised the same place).</div>')
+            f'keyframe to the current frame, {sw("rgb(230,30,30)", "dot")} its current position.</div>')
 
 
 __all__ = ["describe_step", "flow_help_html", "scale_html", "legend_html", "FLOW_SCORE"]

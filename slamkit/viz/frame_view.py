@@ -141,7 +141,7 @@ def step_html(result: "StepResult | None", config: "SlamConfig", drawn: int | No
         return '<span class="slamkit-step">no frame processed yet</span>'
     r = result
     kf = config.keyframes
-    parts = [f"frame <b>{r.frame_index}</b> (id {r.frame_id}, t={r.timestamp:.3f} s) "
+    parts = [f"frame <b>{r.frame_index}</b> (source frame {r.frame_id}, t={r.timestamp:.3f} s) "
              f"<b>[{html.escape(r.status)}]</b>"]
     if not np.isnan(r.flow):
         parts.append(f"flow score {_cmp(r.flow, kf.flow_threshold, '{:.3f}', True)} (flow threshold)")

@@ -16,8 +16,11 @@ and sends the result (:mod:`.sender`) as objects built by :mod:`.scene`:
 
 The map is shown in a display frame (x right, y forward, z up of the first keyframe's camera) centred and
 scaled so it spans about six units (one ``set_transform`` of the root), refitted when the map outgrows it
-or is normalized (only the frustums are re-sent then); "Reset camera" refits it and puts the viewer's
-camera back behind and above the first keyframe.
+or is normalized (only the frustums are re-sent then). The view follows the camera: when the current frame or
+the newest keyframe nears the viewer's edge (:data:`FOLLOW_BOX`), it refits and puts the viewer's camera home
+again (above the path, looking at the map's centre); "Reset camera" does the same at once. Points are coloured
+by their height (or in their image colours: ``ViewSettings.color_by``); the legend, under the viewer, lists
+only what the view draws.
 """
 
 from __future__ import annotations
@@ -34,8 +37,8 @@ from IPython.display import HTML
 
 from ..io import atomic_write_text
 from .diff import KeyframeChanges, PointsRead, diff_keyframes, diff_points
-from .scene import (BACKGROUND_RADIUS, CURRENT_COLOR, DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, LOOP_COLOR, TRACK_COLOR,
-                    display_from_map, hex_to_rgb255, recency_colors)
+from .scene import (BACKGROUND_RADIUS, CURRENT_COLOR, DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, HEIGHT_STOPS, LOOP_COLOR,
+                    TRACK_COLOR, display_from_map, hex_to_rgb255, recency_colors, screen_box)
 from .sender import SceneSender
 from .server import MeshcatServer, ViewerError
 from .settings import ViewSettings
@@ -50,43 +53,57 @@ if TYPE_CHECKING:  # pragma: no cover
 DEFAULT_TITLE = "slamkit map"
 """Title of an exported 3D view."""
 
+FOLLOW_FILL = 0.7
+"""How much of the viewer a reframe made to follow the camera fills (the home view fills 0.85)."""
+
+FOLLOW_BOX = 0.92
+"""The view reframes when a newest frame is seen beyond this fraction of the way from the viewer's centre to
+its edge (normalized device coordinates; the home camera frames the map and every camera within 0.85): the
+camera stays inside the view, clear of its edges."""
+
 
 def legend_text() -> str:
     """What the colours of the 3D view mean (one line, plain text)."""
-    return ("map points in their image colours · keyframe frustums and camera path from green (first) through "
-            "yellow to red (last) · current frame blue · selected track magenta · loop closures cyan · drag to orbit, scroll to zoom")
+    return ("map points coloured by height (dark blue low → yellow high) or in their image colours · keyframe "
+            "frustums and camera path from green (first) through yellow to red (last) · current frame blue · "
+            "selected track magenta · loop closures cyan · drag to orbit, scroll to zoom")
 
 
 def _css(rgb: tuple[float, float, float]) -> str:
     return "#%02x%02x%02x" % tuple(int(round(255 * c)) for c in rgb)
 
 
-LEGEND = (
-    ("linear-gradient(90deg,{},{},{})".format(*(_css(c) for c in recency_colors(np.array([0.0, 0.5, 1.0])))),
-     "keyframes and path: first → last"),
-    (_css(CURRENT_COLOR), "current frame"),
-    (_css(TRACK_COLOR), "selected track"),
-    (_css(LOOP_COLOR), "loop closure"),
-)
-"""(CSS colour, meaning) of each colour of the 3D view besides the points (in their image colours)."""
+LEGEND = {
+    "points-height": ("linear-gradient(90deg,{})".format(",".join(_css(c / 255) for c in HEIGHT_STOPS)),
+                      "points by height: low → high"),
+    "points-image": ("linear-gradient(90deg,#b08060,#6080b0,#c0c0a0)", "points in their image colours"),
+    "keyframes": ("linear-gradient(90deg,{},{},{})".format(
+        *(_css(c) for c in recency_colors(np.array([0.0, 0.5, 1.0])))), "keyframes and path: first → last"),
+    "current": (_css(CURRENT_COLOR), "current frame"),
+    "track": (_css(TRACK_COLOR), "selected track"),
+    "loops": (_css(LOOP_COLOR), "loop closure"),
+}
+"""Legend entry -> (CSS colour, meaning) of each colour of the 3D view; a view lists only what it draws
+(:meth:`MapView.legend_items`)."""
 
 
-def legend_html() -> str:
-    """The colour legend of the 3D view as a small HTML box (swatches and words)."""
-    items = "".join(f'<span style="white-space:nowrap;margin-right:8px"><span style="display:inline-block;'
-                    f'width:18px;height:4px;vertical-align:middle;background:{css}"></span> {html.escape(text)}</span> '
-                    for css, text in LEGEND)
-    return (f'<div class="slamkit-legend" style="font:11px sans-serif;line-height:1.5">{items}'
-            '<span style="white-space:nowrap">points: their image colours</span></div>')
+def legend_html(items=("points-height", "keyframes", "current")) -> str:
+    """The colour legend of the 3D view as a small HTML box (swatches and words) for the entries ``items``
+    (keys of :data:`LEGEND`)."""
+    spans = "".join(f'<span style="white-space:nowrap;margin-right:8px"><span style="display:inline-block;'
+                    f'width:18px;height:4px;vertical-align:middle;background:{LEGEND[k][0]}"></span> '
+                    f'{html.escape(LEGEND[k][1])}</span> ' for k in items)
+    return f'<div class="slamkit-legend" style="font:11px sans-serif;line-height:1.5">{spans}</div>'
 
 
-def captioned_html(page: str, title: str, caption: str, legend: bool = True) -> str:
+def captioned_html(page: str, title: str, caption: str, legend=("points-height", "keyframes", "current")) -> str:
     """meshcat's static page with ``title`` instead of "MeshCat" and ``caption`` (plain text, escaped) in a
-    box over the top left of the viewer, followed by the colour legend (:func:`legend_html`) when ``legend``."""
+    box over the top left of the viewer, followed by the colour legend of the entries ``legend``
+    (:func:`legend_html`; none when empty or None)."""
     page = page.replace("<title>MeshCat</title>", f"<title>{html.escape(title)}</title>", 1)
     box = (f'<div class="slamkit-caption" style="position:fixed;top:8px;left:8px;max-width:45%;z-index:10;'
            f'font:12px sans-serif;background:rgba(255,255,255,0.85);padding:6px 10px;border-radius:4px">'
-           f'<b>{html.escape(title)}</b><br>{html.escape(caption)}{legend_html() if legend else ""}</div>')
+           f'<b>{html.escape(title)}</b><br>{html.escape(caption)}{legend_html(legend) if legend else ""}</div>')
     return page.replace("<body>", "<body>" + box, 1)
 
 
@@ -176,6 +193,11 @@ class MapView:
         self.aspect = float(aspect)
         """Width / height of the viewer (:meth:`iframe_html` draws it so); the home camera frames the map for it."""
         self.stats = UpdateStats()
+        self.reframes = 0
+        """How many times the view reframed to follow the camera."""
+        self.follow = True
+        """Reframe as the camera moves on: refit and re-home when the newest frames leave :data:`FOLLOW_BOX`
+        (the viewer's camera is set again then, so an orbit made by hand is undone)."""
         self.closed = False
         self._map = ShownMap()
         self._outputs: list[tuple[Any, int]] = []
@@ -202,9 +224,10 @@ class MapView:
     def url(self) -> str:
         return self._out.url
 
-    def iframe_html(self, height: int = 480, snapshot: bool = False) -> str:
+    def iframe_html(self, height: int = 480, snapshot: bool = False, legend: bool = True) -> str:
         """The live viewer (for an ipywidgets HTML widget or a cell output), ``height`` pixels high and
-        :attr:`aspect` times as wide (the home camera frames the map for that shape), with the colour legend.
+        :attr:`aspect` times as wide (the home camera frames the map for that shape), with the colour legend
+        of what it draws *under* the viewer (never over the map) unless ``legend`` is False.
 
         The viewer is an ``<object>`` loading the live page from this kernel's server; when it cannot load
         (a saved notebook reopened without the kernel, ``nbconvert --to html``) the browser shows what the
@@ -214,12 +237,30 @@ class MapView:
         inner = (snapshot_iframe(self.static_html(legend=False), "100%", height, lazy=True) if snapshot else
                  f'<div class="slamkit-no-kernel" style="padding:2em;font:13px sans-serif;color:#555">'
                  f'{html.escape(NO_KERNEL_TEXT)}</div>')
-        return (f'<div class="slamkit-map-box" style="height:{int(height)}px;width:{width}px;max-width:100%;'
-                f'overflow:hidden;resize:both;position:relative">'
-                f'<object class="slamkit-map" type="text/html" data="{self.url}" '
-                f'style="width:100%;height:100%;border:none">{inner}</object>'
-                f'<div style="position:absolute;bottom:4px;left:4px;right:4px;background:rgba(255,255,255,0.8);'
-                f'padding:2px 6px;border-radius:3px;pointer-events:none">{legend_html()}</div></div>')
+        box = (f'<div class="slamkit-map-box" style="height:{int(height)}px;width:{width}px;max-width:100%;'
+               f'overflow:hidden;resize:both;position:relative">'
+               f'<object class="slamkit-map" type="text/html" data="{self.url}" '
+               f'style="width:100%;height:100%;border:none">{inner}</object></div>')
+        if not legend:
+            return box
+        legend_box = f'<div style="max-width:{width}px;padding:2px 0">{legend_html(self.legend_items())}</div>'
+        return f"<div>{box}{legend_box}</div>"
+
+    def legend_items(self) -> list[str]:
+        """The legend entries (keys of :data:`LEGEND`) of what this view draws with its settings: the
+        points' colouring, keyframes and path, the current frame, and a selected track or loop closures only
+        when the scene holds one."""
+        s, counts = self.settings, self._out.counts
+        items = [f"points-{s.color_by}"] if s.show_points else []
+        if s.show_keyframes or s.show_path:
+            items.append("keyframes")
+        if s.show_current:
+            items.append("current")
+        if s.track_point >= 0 and counts.get("track", 0):
+            items.append("track")
+        if s.show_path and counts.get("loops", 0):
+            items.append("loops")
+        return items
 
     def display(self, height: int = 480) -> None:
         """Show the live viewer in the notebook (a cell output that :meth:`keep_snapshot` can update)."""
@@ -240,15 +281,17 @@ class MapView:
         return snapshot_iframe(self.static_html(title, caption), f"{int(round(height * self.aspect))}px", height)
 
     def snapshot(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> HTML:
-        """:meth:`snapshot_html` as a cell output (the last expression of a cell)."""
-        return HTML(self.snapshot_html(height, title, caption))
+        """:meth:`snapshot_html` as a cell output (the last expression of a cell; in a ``<div>``, which IPython
+        shows without its "use IFrame" warning)."""
+        return HTML(f"<div>{self.snapshot_html(height, title, caption)}</div>")
 
     def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None, legend: bool = True) -> str:
         """The current scene as one self-contained HTML page (the viewer's JavaScript included), titled
         ``title``, with ``caption`` (default: "drag to orbit, scroll to zoom") and the colour legend (unless
         ``legend`` is False: :meth:`iframe_html` draws its own) over the top left of the viewer."""
         return captioned_html(self._out.static_html(), title,
-                              "drag to orbit, scroll to zoom" if caption is None else caption, legend)
+                              "drag to orbit, scroll to zoom" if caption is None else caption,
+                              self.legend_items() if legend else None)
 
     def export_html(self, path: str | os.PathLike, title: str = DEFAULT_TITLE, caption: str | None = None) -> Path:
         """Write :meth:`static_html` to ``path`` (atomically) for reports; opens from file:// offline."""
@@ -297,6 +340,8 @@ class MapView:
             diff = self._diff(state, keyframes, read, full, new_map, st)
             st.diff_s, t = time.perf_counter() - t, time.perf_counter()
             self._send_diff(diff, state.current, st)
+            if not diff.new_map and not diff.refit:
+                st.refit = self._follow()
             st.send_s = time.perf_counter() - t
             st.objects_sent, st.bytes_sent = self._out.objects, self._out.bytes
         st.total_s = time.perf_counter() - t0
@@ -357,15 +402,17 @@ class MapView:
         groups = diff.groups
         if diff.refit:
             out.send_fit(shown)
-            if not np.isclose(shown.point_size_units(settings), out.point_size, rtol=0.15):
-                groups = frozenset(shown.points.groups() | set(out.chunks))  # the points' size follows the scene
+            if (not np.isclose(shown.point_size_units(settings), out.point_size, rtol=0.15)
+                    or (settings.color_by == "height" and shown.height_range != out.height_range)):
+                # the points' size and height scale follow the scene
+                groups = frozenset(shown.points.groups() | set(out.chunks))
         if groups:
             st.chunks_sent, st.chunks_deleted, st.points_sent = out.send_point_groups(shown, settings, groups)
         if diff.keyframes_changed or diff.path_changed or diff.refit:
             out.send_cameras(shown, settings)
         if diff.new_map or diff.refit:
             out.send_current_geometry(shown, settings)
-        if diff.new_map:
+        if diff.new_map or (diff.refit and self.follow):  # the viewer's camera follows the refitted map
             out.send_camera_home(shown, self.aspect)
         shown.current = current
         out.send_current_pose(shown, settings)
@@ -387,6 +434,48 @@ class MapView:
         self._map.current = None if world_from_cam is None else np.asarray(world_from_cam, np.float64)
         if self._map.key is not None:
             self._out.send_current_pose(self._map, self.settings)
+            self._follow()
+
+    def newest_on_screen(self) -> np.ndarray:
+        """(M, 2) where the home camera sees the current frame, the newest keyframe and the newest path frame,
+        normalized device coordinates (the viewer spans -1..1; M = 0 before the first update)."""
+        shown, out = self._map, self._out
+        if shown.fit is None or out.camera_position is None:
+            return np.empty((0, 2))
+        newest = [shown.current[:3, 3]] if shown.current is not None else []
+        if len(shown.kf_ids):
+            newest.append(shown.kf_centers()[int(np.argmax(shown.kf_times))])
+        if len(shown.path_c):
+            newest.append(shown.path_c[-1])
+        if not newest:
+            return np.empty((0, 2))
+        T = display_from_map(shown.fit)
+        xyz = np.array(newest, np.float64) @ T[:3, :3].T + T[:3, 3]
+        return np.array([np.concatenate(screen_box(np.empty((0, 3)), p[None], out.camera_position, self.aspect))[:2]
+                         for p in xyz])
+
+    def _follow(self) -> bool:
+        """Reframe (refit the map and put the viewer's camera home) when the current frame, the newest
+        keyframe or the newest path frame has left the middle :data:`FOLLOW_BOX` of the viewer (the camera
+        has moved on past what the view framed); True when it did. Off with ``follow = False``."""
+        if not self.follow:
+            return False
+        ndc = self.newest_on_screen()
+        if len(ndc) == 0 or float(np.abs(ndc).max()) <= FOLLOW_BOX:
+            return False
+        out, shown, settings = self._out, self._map, self.settings
+        shown.set_fit(shown.compute_fit(), self.aspect)
+        out.send_fit(shown)
+        if (not np.isclose(shown.point_size_units(settings), out.point_size, rtol=0.15)
+                or (settings.color_by == "height" and shown.height_range != out.height_range)):
+            out.send_point_groups(shown, settings, shown.points.groups() | set(out.chunks))
+        out.send_cameras(shown, settings)
+        out.send_current_geometry(shown, settings)
+        out.send_current_pose(shown, settings)
+        out.send_track(shown, settings)
+        out.send_camera_home(shown, self.aspect, fill=FOLLOW_FILL)  # room to move on before the next reframe
+        self.reframes += 1
+        return True
 
     def clear(self) -> None:
         """Remove the map from the scene (the viewer settings stay)."""
@@ -402,6 +491,8 @@ class MapView:
         old = self.settings
         new = self.settings = replace(old, **changes).validate()
         out, shown = self._out, self._map
+        if new.color_by != old.color_by and shown.key is not None:
+            out.send_point_groups(shown, new, shown.points.groups() | set(out.chunks))
         if new.background != old.background:
             out.send_background(new.background)
         for name, visible in new.visibility().items():

@@ -55,6 +55,26 @@ def recency_colors(fractions: np.ndarray) -> np.ndarray:
     return np.stack([r, g, np.zeros_like(f)], axis=1).astype(np.float32)
 
 
+HEIGHT_STOPS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], np.float64)
+"""Colours of the height scale from low to high, 0..255 (viridis: dark blue, blue, teal, green, yellow)."""
+
+
+def height_colors(heights: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(N,) heights -> (N, 3) uint8 colours of :data:`HEIGHT_STOPS`, ``lo`` (and below) to ``hi`` (and above)."""
+    h = np.asarray(heights, np.float64).reshape(-1)
+    f = np.clip((h - lo) / (hi - lo), 0.0, 1.0) if hi > lo else np.full(len(h), 0.5)
+    x = np.nan_to_num(f, nan=0.5) * (len(HEIGHT_STOPS) - 1)
+    i = np.minimum(x.astype(int), len(HEIGHT_STOPS) - 2)
+    w = (x - i)[:, None]
+    return np.round(HEIGHT_STOPS[i] * (1 - w) + HEIGHT_STOPS[i + 1] * w).astype(np.uint8)
+
+
+def map_heights(xyz: np.ndarray) -> np.ndarray:
+    """(N,) the height of map points (N, 3) in the view (its z up: minus the first keyframe camera's y), map
+    units."""
+    return -np.asarray(xyz, np.float64).reshape(-1, 3)[:, 1]
+
+
 def hex_to_rgb255(color: str) -> list[int]:
     """'#rrggbb' (or 'rrggbb', '#rgb') -> [r, g, b] ints 0..255; ValueError on anything else."""
     c = color.strip().lstrip("#")
@@ -182,9 +202,10 @@ def nearest_camera_distance(points: np.ndarray, centers: np.ndarray, sample: int
     return float(np.median(np.sqrt(d2)))
 
 
-VIEW_DIRECTION = np.array([0.25, -0.9, 0.55]) / np.linalg.norm([0.25, -0.9, 0.55])
-"""Direction from the map's centre to the viewer's home camera (display axes: behind and above the first
-keyframe, a little to the right)."""
+VIEW_DIRECTION = np.array([0.2, -0.5, 0.85]) / np.linalg.norm([0.2, -0.5, 0.85])
+"""Direction from the map's centre to the viewer's home camera (display axes): from above the path (about 58
+degrees up), a little behind the first keyframe and to its right, so the layout (walls, facades) reads as a
+plan while the frustums keep some depth."""
 
 VIEWER_FOV_DEG = 75.0
 """Vertical field of view of meshcat's default camera, degrees."""
@@ -339,7 +360,7 @@ def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
 
 
 __all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURRENT_COLOR", "TRACK_COLOR", "LOOP_COLOR",
-           "Camera", "recency_colors", "hex_to_rgb255", "points_object", "lines_object", "background_object",
+           "Camera", "recency_colors", "hex_to_rgb255", "height_colors", "map_heights", "HEIGHT_STOPS", "points_object", "lines_object", "background_object",
            "geometry_bytes", "world_from_cam", "time_fractions", "frustum_vertices", "compute_fit", "robust_box",
            "nearest_camera_distance", "home_camera_position", "view_centering", "screen_box", "VIEW_DIRECTION",
            "FIT_PERCENTILES",

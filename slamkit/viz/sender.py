@@ -13,9 +13,9 @@ from __future__ import annotations
 import numpy as np
 
 from .scene import (BACKGROUND_RADIUS, background_object, current_frame_object, directions_object, display_from_map,
-                    geometry_bytes, home_camera_position, keyframes_object, loop_band_object, loop_edges_object,
-                    path_object, path_vertex_times, points_object, recency_colors, track_lines_object,
-                    track_point_object)
+                    geometry_bytes, height_colors, home_camera_position, keyframes_object, loop_band_object,
+                    loop_edges_object, map_heights, path_object, path_vertex_times, points_object, recency_colors,
+                    track_lines_object, track_point_object)
 from .settings import ViewSettings
 from .shown import ShownMap
 
@@ -47,6 +47,8 @@ class SceneSender:
         self.current_shown: bool | None = None
         self.point_size = float("nan")
         """The point diameter last sent, viewer units."""
+        self.height_range: tuple[float, float] | None = None
+        """The height scale of the point colours last sent to every group (map units)."""
         self.camera_position: np.ndarray | None = None
         """(3,) the viewer's camera position last sent, viewer axes (x right, y forward, z up)."""
 
@@ -91,11 +93,11 @@ class SceneSender:
         for name, on in settings.visibility().items():
             self.set_visible(name, on)
 
-    def send_camera_home(self, shown: ShownMap, aspect: float) -> None:
-        """The viewer's camera behind and above the first keyframe, looking at the map's centre, as close as
-        frames the 5-95 % box of the points and cameras (``aspect``: the viewer's width / height)."""
+    def send_camera_home(self, shown: ShownMap, aspect: float, fill: float = 0.85) -> None:
+        """The viewer's camera above the path, looking at the map's centre, as close as frames the 5-95 % box
+        of the points and every camera within ``fill`` of the viewer (``aspect``: its width / height)."""
         points, cameras = shown.display_points()
-        offset = home_camera_position(points, aspect, cameras)  # viewer axes: x right, y forward, z up
+        offset = home_camera_position(points, aspect, cameras, fill=fill)  # viewer axes: x right, y forward, z up
         self.camera_position = offset
         position = [float(offset[0]), float(offset[2]), float(-offset[1])]  # three.js is y-up
         self.vis[_VIEWER_CAMERA].set_property("position", position)
@@ -114,6 +116,8 @@ class SceneSender:
         store = shown.points
         keys = sorted(set(int(k) for k in keys))
         size = self.point_size = shown.point_size_units(settings)
+        if set(keys) >= set(self.chunks) | set(store.groups()):
+            self.height_range = shown.height_range  # every group now uses this colour scale
         for k, rows in store.group_rows(keys).items():
             path = f"points/kf{k:06d}"
             if len(rows) == 0 or not settings.in_clip(k):
@@ -122,7 +126,10 @@ class SceneSender:
                     del self.chunks[k]
                     removed += 1
                 continue
-            self.set_object(path, points_object(store.xyz[rows], store.rgb[rows], size))
+            xyz = store.xyz[rows]
+            rgb = store.rgb[rows] if settings.color_by == "image" else height_colors(map_heights(xyz),
+                                                                                      *shown.height_range)
+            self.set_object(path, points_object(xyz, rgb, size))
             self.chunks[k] = len(rows)
             sent += 1
             npts += len(rows)

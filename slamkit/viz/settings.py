@@ -11,6 +11,10 @@ POINT_FRACTION = 0.015
 distance a point spans about 1 % of a 640-pixel-wide image with a 60-degree field of view; in the
 overview, 3 to 6 pixels)."""
 
+COLOR_MODES = ("height", "image")
+"""How map points are coloured: by their height in the view (the walls of a room, the facades of a street read
+from above) or in their image colours."""
+
 PARTS = ("points", "keyframes", "path", "current", "directions")
 """The parts of the map that can be shown or hidden (a ``show_<part>`` field each)."""
 
@@ -33,6 +37,9 @@ class ViewSettings:
     frustum_scale: float = 1.0
     """Frustum depth as a multiple of 1/40 of the map's extent (the 5-95 % box of points and cameras), in map
     units: a monocular map's unit is arbitrary (not a metre) until it is aligned to ground truth."""
+    color_by: str = "height"
+    """Map point colours: ``"height"`` (low dark blue → high yellow, the 5-95 % range of the map's heights in the
+    view, z up) or ``"image"`` (the colour of the pixel they were triangulated from)."""
     point_size: float = 1.0
     """Point diameter as a multiple of :data:`POINT_FRACTION` of the median distance from a map point to its
     nearest camera, map units (so points look alike on any map, whatever its scale)."""
@@ -43,6 +50,8 @@ class ViewSettings:
 
     def validate(self) -> "ViewSettings":
         hex_to_rgb255(self.background)
+        if self.color_by not in COLOR_MODES:
+            raise ValueError(f"color_by must be one of {', '.join(COLOR_MODES)}, got {self.color_by!r}")
         if not self.frustum_scale > 0 or not self.point_size > 0:
             raise ValueError("frustum_scale and point_size must be > 0")
         if self.clip is not None and (len(self.clip) != 2 or self.clip[0] > self.clip[1]):
@@ -67,4 +76,4 @@ class ViewSettings:
         return POINT_FRACTION * view_depth * self.point_size
 
 
-__all__ = ["ViewSettings", "PARTS", "POINT_FRACTION"]
+__all__ = ["ViewSettings", "PARTS", "POINT_FRACTION", "COLOR_MODES"]

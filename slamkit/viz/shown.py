@@ -15,7 +15,7 @@ import numpy as np
 import pycolmap
 
 from .diff import PointStore
-from .scene import (DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, Camera, compute_fit, display_from_map,
+from .scene import (DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, Camera, compute_fit, display_from_map, map_heights,
                     nearest_camera_distance, time_fractions, view_centering, world_from_cam)
 from .settings import ViewSettings
 
@@ -51,6 +51,8 @@ class ShownMap:
         self.view_depth = 1.0
         """Median distance from a map point to its nearest camera, map units (set with the fit)."""
         self.camera: Camera | None = None
+        self.height_range: tuple[float, float] = (0.0, 1.0)
+        """(low, high) map units: the 5-95 % range of the points' heights at the last fit (their colour scale)."""
 
     @property
     def map_extent(self) -> float:
@@ -95,10 +97,15 @@ class ShownMap:
         return float(t.min()), float(t.max())
 
     # ------------------------------------------------------------------ display fit
+    def camera_centers(self) -> np.ndarray:
+        """(C, 3) world centres of the keyframes, the path's frames and the current frame."""
+        cur = self.current[None, :3, 3] if self.current is not None else np.empty((0, 3))
+        return np.concatenate([self.kf_centers(), self.path_c, cur])
+
     def compute_fit(self) -> tuple[np.ndarray, float]:
-        """(centre (3,), extent) around the points, keyframe centres and path."""
+        """(centre (3,), extent) around the points, keyframe centres, path and current frame."""
         pts = self.points.xyz[self.points.alive()].astype(np.float64)
-        return compute_fit(pts, self.kf_centers(), self.path_c)
+        return compute_fit(pts, self.kf_centers(), self.camera_centers())
 
     def set_fit(self, fit: tuple[np.ndarray, float], aspect: float | None = None) -> None:
         """Use ``fit`` and measure the depth the points were seen at (for their size) on the same map; with
@@ -110,6 +117,12 @@ class ShownMap:
             R = DISPLAY_FROM_OPENCV * (DISPLAY_EXTENT / fit[1])
             self.fit = (fit[0] + np.linalg.solve(R, offset), fit[1])
         pts = self.points.xyz[self.points.alive()]
+        if len(pts):  # the colour scale of heights, kept unless the map's range changed by 15 % of it
+            lo, hi = np.percentile(map_heights(pts), [5, 95])
+            new = (float(lo), float(hi)) if hi > lo else (float(lo) - 0.5, float(lo) + 0.5)
+            old = self.height_range
+            if max(abs(new[0] - old[0]), abs(new[1] - old[1])) > 0.15 * max(old[1] - old[0], 1e-12):
+                self.height_range = new
         depth = nearest_camera_distance(pts, np.concatenate([self.kf_centers(), self.path_c]))
         self.view_depth = depth if np.isfinite(depth) and depth > 0 else fit[1] / 3
 
@@ -127,7 +140,7 @@ class ShownMap:
         pts = self.points.xyz[self.points.alive()].astype(np.float64)
         if len(pts) > sample:
             pts = pts[np.random.default_rng(0).choice(len(pts), sample, replace=False)]
-        cams = np.concatenate([self.kf_centers(), self.path_c])
+        cams = self.camera_centers()
         T = display_from_map(self.fit)
         return pts @ T[:3, :3].T + T[:3, 3], cams @ T[:3, :3].T + T[:3, 3]
 

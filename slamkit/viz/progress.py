@@ -1,0 +1,24 @@
+"""A progress bar that a saved notebook keeps: plain text on stdout, not a widget.
+
+``tqdm.auto`` draws a widget in a notebook, which a saved (autosaved) notebook, GitHub's viewer and an
+offline ``nbconvert --to html`` show as "model not found" or nothing. :func:`progress_bar` is tqdm's text
+bar on stdout (a stream output, kept as text), redrawn at most every 3 seconds, with the count and the
+elapsed time only: a rate would be a second speed beside the one a notebook defines and prints.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from tqdm.std import tqdm
+
+BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar:30}| {n_fmt}/{total_fmt} {unit}s [{elapsed} elapsed]"
+
+
+def progress_bar(total: int, unit: str = "frame", desc: str = "progress") -> tqdm:
+    """A text progress bar over ``total`` items (``unit``), on stdout; ``update(1)`` per item, ``close()``."""
+    return tqdm(total=total, unit=unit, desc=desc, file=sys.stdout, bar_format=BAR_FORMAT, mininterval=3.0,
+                ascii=False, dynamic_ncols=False, ncols=100)
+
+
+__all__ = ["progress_bar", "BAR_FORMAT"]
