@@ -113,7 +113,8 @@ def test_the_focal_of_a_rendered_camera_is_recovered_within_one_percent(estimate
 def test_the_estimate_is_saved_reported_and_reused(estimated, tmp_path):
     slam, out = estimated
     saved = read_camera_txt(out / "camera.txt", 640, 480)
-    assert saved.fx == pytest.approx(slam.camera.fx, rel=1e-12) and not saved.has_distortion
+    assert saved.fx == pytest.approx(slam.camera.fx, rel=1e-12) and saved.dist == pytest.approx(slam.camera.dist)
+    assert abs(saved.dist[0]) < 1e-3  # a pinhole render: BA's k1 is noise (measured 0.00045, 0.3 px at a corner)
     assert "estimated" in (out / "camera.txt").read_text()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["camera"]["origin"] == "estimated"
@@ -128,7 +129,7 @@ def test_the_estimate_is_saved_reported_and_reused(estimated, tmp_path):
     res = export(out, tmp_path / "export", frames="keyframes")
     exported = pycolmap.Reconstruction(str(tmp_path / "export" / "sparse" / "0"))
     assert exported.camera(next(iter(exported.cameras))).params[0] == pytest.approx(slam.camera.fx)
-    assert res.camera_model == "PINHOLE"
+    assert res.camera_model == ("OPENCV" if saved.has_distortion else "PINHOLE")
 
 
 def test_a_resumed_run_keeps_the_estimate_and_equals_an_uninterrupted_one(estimated, tmp_path):

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import shown
 from .run_dir import file_sha256
 
 __all__ = ["FINGERPRINT_COLUMNS", "changed", "frame_file", "frame_fingerprint", "image_size_of"]
@@ -119,9 +120,9 @@ def frame_fingerprint(source, i: int) -> dict[str, str]:
         return empty
     try:
         w, h, sha = _measure(source, path, memo=True)
-        return {"file": path.name, "width": str(w), "height": str(h), "sha256": sha}
+        return {"file": shown(path.name), "width": str(w), "height": str(h), "sha256": sha}
     except Exception:  # noqa: BLE001 - an unreadable file (the run skipped it): nothing to record
-        return {**empty, "file": path.name}
+        return {**empty, "file": shown(path.name)}
 
 
 def changed(recorded: dict, source, i: int) -> str | None:
@@ -135,7 +136,7 @@ def changed(recorded: dict, source, i: int) -> str | None:
         return "the source has no file for it now"
     if not path.is_file():
         return f"{path} is missing"
-    if recorded.get("file") and path.name != recorded["file"]:
+    if recorded.get("file") and shown(path.name) != recorded["file"]:  # names as text, odd bytes as \xNN
         return f"it is read from {path} now, the run read {recorded['file']}"
     try:
         w, h, now = _measure(source, path, memo=False)  # read again, never from the memo: this is the check

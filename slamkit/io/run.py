@@ -71,7 +71,7 @@ def _write_run(slam: "Slam", tmp: Path, session: bool) -> None:
     if errors:
         summary["errors"] = {str(k): v for k, v in sorted(errors.items())}
     (tmp / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2))
-    (tmp / "frames.csv").write_text(_frames_csv(slam))
+    (tmp / "frames.csv").write_text(_frames_csv(slam), errors="backslashreplace")  # any bytes in a message
     if getattr(slam, "camera", None) is not None:
         write_camera_txt(tmp / CAMERA_TXT, slam.camera, f"the camera of this run: {_describe_camera(slam)}\n"
                          "reuse it on another video from the same camera: slamkit run VIDEO --camera RUN_DIR")
