@@ -460,3 +460,16 @@ def test_global_ba_reduces_reprojection_error_of_a_noisy_map(built_map):
     assert res.kind == "global" and res.num_images == slam_map.num_keyframes
     rec.update_point_3d_errors()
     assert slam_map.mean_reprojection_error() < 1.2 * before_err
+
+
+def test_sift_respects_its_keypoint_cap():
+    """OpenCV's SIFT keeps keypoints that tie with the last one's response (501 for a cap of 500 on this frame;
+    2,001 for 2,000 on frame 0 of the default sequence, notebook 04): the extractor keeps the strongest
+    ``num_features``."""
+    from slamkit.sources import open_source
+
+    gray = open_source("synthetic:default?frames=2")[0].gray
+    feats = create_extractor("sift", num_features=2000).extract(gray)
+    assert len(feats) == 2000
+    weaker = create_extractor("sift", num_features=500).extract(gray)
+    assert len(weaker) == 500 and weaker.scores.min() >= np.sort(feats.scores)[-500] - 1e-6

@@ -81,7 +81,10 @@ class SiftExtractor:
         kps, desc = self._sift.detectAndCompute(gray, None)
         if desc is not None and len(desc):
             desc = np.sqrt(desc / np.maximum(desc.sum(axis=1, keepdims=True), 1e-12)).astype(np.float32)  # RootSIFT
-        return _to_features(kps, desc, False, gray.shape)
+        feats = _to_features(kps, desc, False, gray.shape)
+        if len(feats) > self.num_features:  # OpenCV keeps the keypoints that tie with the last one's response
+            feats = feats.subset(np.sort(np.argsort(-feats.scores, kind="stable")[: self.num_features]))
+        return feats
 
 
 def _to_features(kps, desc, binary: bool, shape: tuple[int, ...]) -> Features:
