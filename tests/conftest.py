@@ -20,6 +20,27 @@ def shared_data(name: str) -> Path:
     return path
 
 
+def image_folder_run(tmp_path: Path, motion: str, frames: int, init_frames: int):
+    """A rendered ``motion`` written as a plain image folder (``tmp_path/images``, PNG files) and run into
+    ``tmp_path/run`` with its exact camera: (source, image folder, run folder, the run's outcome)."""
+    import shutil
+
+    from slamkit.config import SlamConfig
+    from slamkit.runner import run_to_folder
+    from slamkit.sources.synthetic import synthetic_source, write_tum_sequence
+
+    src = synthetic_source(motion, frames=frames)
+    tum = write_tum_sequence(src, tmp_path / "tum")
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for p in sorted((tum / "rgb").glob("*.png")):
+        shutil.copy(p, folder / p.name)
+    cam = src.camera
+    config = SlamConfig().with_overrides(init_frames=init_frames, camera=f"{cam.fx},{cam.fy},{cam.cx},{cam.cy}")
+    run = tmp_path / "run"
+    return src, folder, run, run_to_folder(str(folder), run, config, evaluate_ate=False)
+
+
 @pytest.fixture
 def shared():
     """The :func:`shared_data` helper as a fixture: ``shared("kitti-odometry")``."""

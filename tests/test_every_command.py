@@ -11,7 +11,6 @@ import hashlib
 import os
 import shutil
 import signal
-import stat
 import subprocess
 import sys
 import time
@@ -25,7 +24,7 @@ from hypothesis import given, settings, strategies as st
 import slamkit
 from slamkit.cli import main
 from slamkit.config import SlamConfig
-from slamkit.errors import ArgumentTypeError, CalibrationError, ConfigError, OutputError, SlamkitError
+from slamkit.errors import ArgumentTypeError, CalibrationError, OutputError, SlamkitError
 from slamkit.exporter import export
 from slamkit.io import read_tum
 from slamkit.io.run_dir import check_output, out_dir_lock
@@ -33,7 +32,7 @@ from slamkit.io.trajectory import PIPE_TIMEOUT
 from slamkit.runner import EXIT_NOTHING_POSED, run_to_folder
 from slamkit.sources.synthetic import synthetic_source, write_tum_sequence
 
-from conftest import shared_data
+from conftest import image_folder_run
 
 pycolmap.logging.minloglevel = 2
 
@@ -387,19 +386,11 @@ def test_ablate_with_workers_stops_within_seconds_on_sigterm(tmp_path):
 def test_export_after_images_were_deleted_names_the_source_and_the_counts(tmp_path):
     """The run's image folder lost frames after the run: the export says so (counts, folder), not "frame 10 is
     not frame 30"."""
-    src = synthetic_source("handheld", frames=30)
-    tum = write_tum_sequence(src, tmp_path / "tum")
-    folder = tmp_path / "images"
-    folder.mkdir()
-    for p in sorted((tum / "rgb").glob("*.png")):
-        shutil.copy(p, folder / p.name)
-    cam = src.camera
-    config = SlamConfig().with_overrides(init_frames=10, camera=f"{cam.fx},{cam.fy},{cam.cx},{cam.cy}")
-    run = tmp_path / "run"
-    assert run_to_folder(str(folder), run, config, evaluate_ate=False).saved
+    src, folder, run, outcome = image_folder_run(tmp_path, "handheld", 30, init_frames=10)
+    assert outcome.saved
     for p in sorted(folder.glob("*.png"))[:10]:
         p.unlink()
-    with pytest.raises(SlamkitError, match=rf"has 20 frames now but had 30 when the run was made") as e:
+    with pytest.raises(SlamkitError, match=r"has 20 frames now but had 30 when the run was made") as e:
         export(run, tmp_path / "ds", frames="all")
     assert str(folder) in str(e.value) and "\n" not in str(e.value)
     assert not (tmp_path / "ds").exists()

@@ -18,11 +18,9 @@ import shutil
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
-import numpy as np
 import pycolmap
 import pytest
 
@@ -35,12 +33,12 @@ from slamkit.exporter import export
 from slamkit.exporter.runfolder import load_run
 from slamkit.io import atomic_write_text, write_kitti, write_tum
 from slamkit.io.run import save_run
-from slamkit.io.run_dir import check_output, write_manifest
+from slamkit.io.run_dir import check_output
 from slamkit.io.trajectory import MAX_TEXT_BYTES
 from slamkit.runner import EXIT_NOTHING_POSED, EXIT_POOR_MATCH, run_to_folder
 from slamkit.sources.synthetic import synthetic_source, write_tum_sequence
 
-from conftest import shared_data
+from conftest import image_folder_run, shared_data
 
 pycolmap.logging.minloglevel = 2
 ROOT = Path(__file__).resolve().parents[1]
@@ -267,16 +265,8 @@ def test_the_python_api_refuses_a_folder_inside_the_source_as_the_cli_does(tmp_p
 def test_export_refuses_when_the_source_changed_after_the_run(tmp_path):
     """The run's images are re-read by export: two swapped files, or one re-encoded at another size, are named
     (frame and file) instead of exporting the wrong images under the run's poses."""
-    src = synthetic_source("sideways", frames=20)
-    tum = write_tum_sequence(src, tmp_path / "tum")
-    folder = tmp_path / "images"
-    folder.mkdir()
-    for p in sorted((tum / "rgb").glob("*.png")):
-        shutil.copy(p, folder / p.name)
-    cam = src.camera
-    config = SlamConfig().with_overrides(init_frames=8, camera=f"{cam.fx},{cam.fy},{cam.cx},{cam.cy}")
-    run = tmp_path / "run"
-    assert run_to_folder(str(folder), run, config, evaluate_ate=False).exit_code == 0
+    src, folder, run, outcome = image_folder_run(tmp_path, "sideways", 20, init_frames=8)
+    assert outcome.exit_code == 0
     export(run, tmp_path / "ok", frames="all")  # unchanged: exported
     posed = [f.index for f in load_run(run).frames]  # frame k is the k-th file (no frame skip)
     files = sorted(folder.glob("*.png"))
