@@ -50,7 +50,7 @@ class BundleAdjustmentConfig:
     keypoint is held to 2.4 px and a coarse one to its level's noise; points are then filtered by
     triangulation angle only. 0: COLMAP's flat ``max_reproj_error_px`` for every observation (the ``seed``
     preset). With ``local_passes`` = 2 it took 7-Scenes at every 5th frame from 5.03 +- 0.77 to 2.93 +- 0.04
-    cm (3 seeds), and cost KITTI 07 0.36 -> 0.37 m (benchmarks/HISTORY.md, "Local mapping by default (issue
+    cm and cost KITTI 07 0.347 -> 0.373 m (3 seeds each; benchmarks/HISTORY.md, "Local mapping by default (issue
     39)")."""
     local_passes: int = 2
     """Local BA runs this many times, with the outlier test between the passes (ORB-SLAM runs two: the
@@ -171,7 +171,7 @@ class BundleAdjuster:
             cfg, points = self._local_config(slam_map, window)
             pycolmap.create_default_bundle_adjuster(
                 self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
-            chi2 = self.config.outlier_chi2
+            chi2 = self.config.outlier_chi2  # 0: COLMAP's flat bound, unscaled
             removed += remove_outlier_observations(slam_map, window, chi2 or self.config.max_reproj_error_px ** 2,
                                                    scaled=chi2 > 0)
         cfg, points = self._local_config(slam_map, window)
@@ -254,6 +254,7 @@ class BundleAdjuster:
         filtered += removed
         slam_map.changed()
         return merged, completed, filtered
+
 
 def remove_outlier_observations(slam_map: SlamMap, image_ids, chi2: float, scaled: bool = True) -> int:
     """Remove every observation in ``image_ids`` whose squared reprojection error (pixels) exceeds ``chi2``
