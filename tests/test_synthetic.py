@@ -322,7 +322,9 @@ def test_default_sequence_cache_is_reused(default_cache, monkeypatch):
     t0 = time.perf_counter()
     again = open_synthetic("default", frame_skip=2, max_frames=50)
     seconds = time.perf_counter() - t0
-    assert seconds < 1.0 and seconds < first_seconds / 10
+    # reused, not rendered again: no file rewritten, and a tenth of the first render's time (relative, so a busy
+    # machine slows both; the checksum check of issue 40 reads the 37 MB once: 0.1-0.4 s)
+    assert seconds < first_seconds / 10
     assert {p: p.stat().st_mtime_ns for p in folder.rglob("*")} == mtimes
     assert len(again) == 50 and again.frame_ids[1] == 2
     assert not list(root.glob(".*tmp"))  # no temporary folder left behind
