@@ -11,56 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 import pycolmap
+from conftest import pyramid_noise_map as noisy_map
 
-from slamkit.camera import Intrinsics
-from slamkit.features import Features
-from slamkit.map import SlamMap, keypoint_scales, rigid_from_matrix
+from slamkit.map import SlamMap, keypoint_scales
 from slamkit.stages.ba import BundleAdjuster, BundleAdjustmentConfig, remove_outlier_observations
 
 pycolmap.logging.minloglevel = 2
 
-CAMERA = Intrinsics(640, 480, 500.0, 500.0, 320.0, 240.0)
 CHI2 = 5.991
-
-
-def _pose(x: float) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = [-x, 0.0, 0.0]
-    return T
-
-
-def _project(T: np.ndarray, X: np.ndarray) -> np.ndarray:
-    Xc = X @ T[:3, :3].T + T[:3, 3]
-    return Xc[:, :2] / Xc[:, 2:] * [CAMERA.fx, CAMERA.fy] + [CAMERA.cx, CAMERA.cy]
-
-
-def noisy_map(num_keyframes: int = 5, n: int = 400, seed: int = 0):
-    """(map, true points (n, 3), true poses, octave of each point's keypoints (n,)): keyframes 0.25 m apart
-    looking at points 4-6 m away; each point has one octave (0-7) in every keyframe, noise 1.2^octave px per
-    axis (ORB-SLAM's model: sigma 1 px at the finest level)."""
-    rng = np.random.default_rng(seed)
-    X = rng.uniform([-1.5, -1.0, 4.0], [2.5, 1.0, 6.0], (n, 3))
-    octave = rng.integers(0, 8, n)
-    sigma = 1.2 ** octave
-    poses = [_pose(0.25 * k) for k in range(num_keyframes)]
-    slam_map = SlamMap(CAMERA)
-    for k, T in enumerate(poses):
-        kp = _project(T, X) + rng.normal(0.0, 1.0, (n, 2)) * sigma[:, None]
-        feats = Features(kp, rng.integers(0, 256, (n, 32), dtype=np.uint8), np.ones(n, np.float32), True,
-                         sizes=(31.0 * sigma).astype(np.float32), image_size=(CAMERA.width, CAMERA.height))
-        slam_map.add_image(k, k / 10, kp, feats, np.zeros((n, 3), np.uint8))
-    ids = list(range(1, num_keyframes + 1))
-    for a in ids:
-        for b in ids:
-            if a < b:
-                slam_map.add_matches(a, b, np.stack([np.arange(n), np.arange(n)], axis=1))
-    slam_map.observe(*ids)
-    for image_id, T in zip(ids, poses):
-        slam_map.register(image_id, rigid_from_matrix(T))
-    for i in range(n):
-        slam_map.add_point(X[i], tuple((image_id, i) for image_id in ids), np.zeros(3, np.uint8))
-    slam_map.changed()
-    return slam_map, X, poses, octave
 
 
 def _observations(slam_map: SlamMap) -> set[tuple[int, int]]:

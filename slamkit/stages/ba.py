@@ -16,6 +16,7 @@ import pycolmap
 
 from ..errors import ConfigError, check_fields
 from ..map import BA_LOSSES as _LOSSES, CAMERA_ID, SlamMap, bundle_adjustment_options, keypoint_scales
+from .weighted_ba import weighted_adjust
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,15 @@ class BundleAdjustmentConfig:
     """Local BA runs this many times, with the outlier test between the passes (ORB-SLAM runs two: the
     second adjusts without the outliers the first exposed)."""
     loss: str = "soft_l1"
-    """Robust loss: trivial, soft_l1, cauchy or huber (scale 1 px)."""
+    """Robust loss of COLMAP's BA: trivial, soft_l1, cauchy or huber (scale 1 px)."""
+    weighting: str = "none"
+    """Local BA's observation weights. "none": COLMAP's BA, every observation alike with ``loss``. "level":
+    ORB-SLAM's, each observation's information 1/sigma^2 of its keypoint's level
+    (:func:`~slamkit.map.keypoint_scales`), Huber at sqrt(``outlier_chi2``) on the whitened error
+    (:mod:`slamkit.stages.weighted_ba`); it recovers a synthetic scene with pyramid noise closer to the truth
+    (tests/test_weighted_ba.py) but lost on the real rows, at 2-3x local BA's time: KITTI 07 skip 1 0.396 m
+    against 0.373, 7-Scenes skip 5 3.36 against 2.93 cm (3 seeds; benchmarks/HISTORY.md). Falls back
+    to "none" when intrinsics are refined."""
     normalize: bool = True
     """Normalize the map (COLMAP ``Reconstruction.normalize``) after global BA."""
     refine_intrinsics: bool = False
@@ -80,6 +89,8 @@ class BundleAdjustmentConfig:
             "num_threads": ("[-1, 1024]", "-1: all cores, else 1 to 1024 threads")})
         if self.num_threads == 0:
             raise ConfigError("ba.num_threads must be -1 (all cores) or a number of threads >= 1 (got 0)")
+        if self.weighting not in ("level", "none"):
+            raise ConfigError(f"ba.weighting must be 'level' or 'none' (got {self.weighting!r})")
         if self.loss not in _LOSSES:
             raise ConfigError(f"ba.loss must be one of {sorted(_LOSSES)} (got {self.loss!r})")
 
@@ -168,19 +179,41 @@ class BundleAdjuster:
         window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
         removed = 0
         for _ in range(self.config.local_passes - 1):  # ORB-SLAM: adjust, drop the outliers, adjust again
-            cfg, points = self._local_config(slam_map, window)
-            pycolmap.create_default_bundle_adjuster(
-                self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
+            self._solve_local(slam_map, window)
             chi2 = self.config.outlier_chi2  # 0: COLMAP's flat bound, unscaled
             removed += remove_outlier_observations(slam_map, window, chi2 or self.config.max_reproj_error_px ** 2,
                                                    scaled=chi2 > 0)
-        cfg, points = self._local_config(slam_map, window)
-        summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.local_iterations), cfg, slam_map.reconstruction).solve()
+        termination, num_points = self._solve_local(slam_map, window)
         merged, completed, filtered = self._maintain(slam_map, set(window), min_tri_angle_deg)
         filtered += removed
-        return BundleAdjustmentResult("local", len(window), len(points), str(summary.termination_type).split(".")[-1],
+        return BundleAdjustmentResult("local", len(window), num_points, termination,
                                       merged, completed, filtered, time.perf_counter() - t0, None)
+
+    def _solve_local(self, slam_map: SlamMap, window: list[int]) -> tuple[str, int]:
+        """One local BA solve over ``window``; returns (termination, number of the window's points)."""
+        c = self.config
+        if c.weighting == "level" and not c.refine_intrinsics:
+            var, const = self._local_points(slam_map, window)
+            gauge = sorted(window)[:2] if len(window) >= slam_map.num_keyframes else ()
+            chi2 = c.outlier_chi2 or 5.991
+            res = weighted_adjust(slam_map, window, var, const, gauge, c.local_iterations, float(np.sqrt(chi2)),
+                                  c.function_tolerance, c.num_threads)
+            return res.termination, len(var) + len(const)
+        cfg, points = self._local_config(slam_map, window)
+        summary = pycolmap.create_default_bundle_adjuster(
+            self._options(c.local_iterations), cfg, slam_map.reconstruction).solve()
+        return str(summary.termination_type).split(".")[-1], len(points)
+
+    def _local_points(self, slam_map: SlamMap, window: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """The window's points: (variable, held constant: tracks longer than ``local_max_track_length``)."""
+        points = np.unique(np.concatenate([slam_map.point3D_ids(i) for i in window]))
+        points = points[points >= 0]
+        max_track = self.config.local_max_track_length
+        if max_track <= 0:
+            return points, points[:0]
+        point3D = slam_map.reconstruction.point3D
+        long = np.array([point3D(int(p)).track.length() > max_track for p in points.tolist()], bool)
+        return points[~long], points[long]
 
     def _local_config(self, slam_map: SlamMap, window: list[int]) -> tuple[pycolmap.BundleAdjustmentConfig, list]:
         """Local BA's problem: the window's keyframes, their points (long tracks held), the gauge when nothing
