@@ -56,6 +56,10 @@ class BundleAdjustmentConfig:
     local_passes: int = 2
     """Local BA runs this many times, with the outlier test between the passes (ORB-SLAM runs two: the
     second adjusts without the outliers the first exposed)."""
+    confirm_outliers: bool = True
+    """ORB-SLAM's local BA leaves the first pass's outliers out of the second and erases only those the second
+    pass confirms; with this set, the observations removed between the passes are given back to their points
+    when the second pass's solution brings them within the bound (False: erased at the first pass)."""
     loss: str = "soft_l1"
     """Robust loss of COLMAP's BA: trivial, soft_l1, cauchy or huber (scale 1 px)."""
     weighting: str = "none"
@@ -177,13 +181,15 @@ class BundleAdjuster:
                      ) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
         window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
-        removed = 0
+        removed, excluded = 0, []
+        chi2 = self.config.outlier_chi2  # 0: COLMAP's flat bound, unscaled
+        bound = chi2 or self.config.max_reproj_error_px ** 2
         for _ in range(self.config.local_passes - 1):  # ORB-SLAM: adjust, drop the outliers, adjust again
             self._solve_local(slam_map, window)
-            chi2 = self.config.outlier_chi2  # 0: COLMAP's flat bound, unscaled
-            removed += remove_outlier_observations(slam_map, window, chi2 or self.config.max_reproj_error_px ** 2,
-                                                   scaled=chi2 > 0)
+            removed += remove_outlier_observations(slam_map, window, bound, scaled=chi2 > 0, removed=excluded)
         termination, num_points = self._solve_local(slam_map, window)
+        if self.config.confirm_outliers and excluded:
+            removed -= restore_observations(slam_map, excluded, bound, scaled=chi2 > 0)
         merged, completed, filtered = self._maintain(slam_map, set(window), min_tri_angle_deg)
         filtered += removed
         return BundleAdjustmentResult("local", len(window), num_points, termination,
@@ -289,15 +295,17 @@ class BundleAdjuster:
         return merged, completed, filtered
 
 
-def remove_outlier_observations(slam_map: SlamMap, image_ids, chi2: float, scaled: bool = True) -> int:
+def remove_outlier_observations(slam_map: SlamMap, image_ids, chi2: float, scaled: bool = True,
+                                removed: list | None = None) -> int:
     """Remove every observation in ``image_ids`` whose squared reprojection error (pixels) exceeds ``chi2``
     times its keypoint's scale squared (``scaled``; else ``chi2`` flat), or that lies behind its camera
     (ORB-SLAM's outlier classification after BA). A point left with fewer than two observations is deleted
-    (COLMAP's ``ObservationManager.delete_observation``). Returns the observations removed."""
+    (COLMAP's ``ObservationManager.delete_observation``). Returns the observations removed; ``removed``, when
+    given, gets (image id, point2D index, point3D id) of each."""
     rec, obs = slam_map.reconstruction, slam_map.observations
     slam_map.changed()  # track maintenance may have merged points since the ids were cached
     K = slam_map.pycolmap_camera.calibration_matrix()
-    removed = 0
+    removed_list, removed = removed, 0
     for image_id in sorted(int(i) for i in image_ids):
         if image_id not in slam_map.keyframes:
             continue
@@ -314,12 +322,45 @@ def remove_outlier_observations(slam_map: SlamMap, image_ids, chi2: float, scale
         bound = chi2 * (keypoint_scales(kf.features)[idx] ** 2 if scaled else 1.0)
         bad = idx[(err2 > bound) | (z <= 0)]
         for p2 in bad.tolist():
-            if rec.image(image_id).point2D(p2).has_point3D():  # an earlier deletion may have taken its point
+            point2D = rec.image(image_id).point2D(p2)
+            if point2D.has_point3D():  # an earlier deletion may have taken its point
+                if removed_list is not None:
+                    removed_list.append((image_id, p2, int(point2D.point3D_id)))
                 obs.delete_observation(image_id, p2)
                 removed += 1
         if len(bad):  # a deleted point leaves other keyframes too
             slam_map.changed()
     return removed
+
+
+def restore_observations(slam_map: SlamMap, excluded, chi2: float, scaled: bool = True) -> int:
+    """Give back to their points the ``excluded`` observations ((image id, point2D index, point3D id), as
+    :func:`remove_outlier_observations` lists them) whose point still exists and whose squared reprojection
+    error is now within ``chi2`` (times the keypoint's scale squared when ``scaled``), in front of the camera.
+    Returns the observations restored."""
+    rec, obs = slam_map.reconstruction, slam_map.observations
+    K = slam_map.pycolmap_camera.calibration_matrix()
+    restored, scales = 0, {}
+    for image_id, p2, point3D_id in excluded:
+        if image_id not in slam_map.keyframes or not rec.exists_point3D(point3D_id):
+            continue
+        point2D = rec.image(image_id).point2D(p2)
+        if point2D.has_point3D() or rec.point3D(point3D_id).track.length() < 2:
+            continue
+        kf = slam_map.keyframes[image_id]
+        X = slam_map.cam_from_world(image_id) * rec.point3D(point3D_id).xyz
+        if X[2] <= 0:
+            continue
+        uv = (K @ X)[:2] / X[2]
+        if scaled and image_id not in scales:
+            scales[image_id] = keypoint_scales(kf.features)
+        scale = scales[image_id][p2] if scaled else 1.0
+        if float(((uv - kf.keypoints[p2]) ** 2).sum()) <= chi2 * scale ** 2:
+            obs.add_observation(point3D_id, pycolmap.TrackElement(image_id, p2))
+            restored += 1
+    if restored:
+        slam_map.changed()
+    return restored
 
 
 def filter_angle_after(starved: bool, local: bool, mapper, local_mapping, ba: BundleAdjustmentConfig) -> float | None:
