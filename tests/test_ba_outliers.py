@@ -102,3 +102,24 @@ def test_the_default_classifies_outliers_at_the_keypoint_scale_and_the_seed_pres
     assert ba.outlier_chi2 == CHI2 and ba.local_passes == 2
     seed = SlamConfig.preset("seed").ba
     assert seed.outlier_chi2 == 0 and seed.local_passes == 1
+
+
+def test_observations_excluded_by_a_pass_are_given_back_when_within_the_bound():
+    """``restore_observations`` (``ba.confirm_outliers``): observations taken out at a bound too tight for their
+    noise come back at the proper bound, a planted outlier does not."""
+    from slamkit.stages.ba import restore_observations
+
+    slam_map, _, _, _ = noisy_map(seed=4)
+    newest = max(slam_map.keyframes)
+    kf = slam_map.keyframes[newest]
+    kf.keypoints[7] += [20.0, 0.0]  # one gross outlier
+    slam_map.reconstruction.image(newest).point2D(7).xy = kf.keypoints[7]
+    before = _observations(slam_map)
+    excluded = []
+    removed = remove_outlier_observations(slam_map, [newest], 0.01, removed=excluded)  # nearly all out
+    assert removed == len(excluded) > 300 and all(i == newest for i, _, _ in excluded)
+    restored = restore_observations(slam_map, excluded, CHI2)
+    after = _observations(slam_map)
+    assert (newest, 7) not in after
+    assert restored == len(after & before) - len(before - {(i, p) for i, p, _ in excluded})
+    assert restored > 0.85 * removed  # the chi-square bound keeps ~95 % of ordinary observations
