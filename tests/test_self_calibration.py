@@ -148,6 +148,8 @@ def test_a_resumed_run_keeps_the_estimate_and_equals_an_uninterrupted_one(estima
 
 TRUE_K1 = -0.1
 """Barrel distortion of a wide phone or action camera: the corners of the 640x480 image move 16 px inward."""
+FR1_LENS = "k1=0.262&k2=-0.953&k3=1.163"
+"""TUM freiburg1's colour camera (its published k1 k2 k3; p1, p2 left out)."""
 
 
 @pytest.fixture(scope="module")
@@ -174,6 +176,13 @@ def test_the_rendered_distortion_is_exact():
     assert np.abs(a[:60, :60] - b[:60, :60]).mean() > 10
     with pytest.raises(ConfigError, match="k1"):
         open_source("synthetic:handheld?frames=2&k1=0.9")
+    # TUM freiburg1's lens (k1, k2, k3): exact too; a lens that folds back inside the image is refused
+    fr1 = open_source(f"synthetic:handheld?frames=2&{FR1_LENS}")
+    assert fr1.camera.dist == (0.262, -0.953, 0, 0, 1.163)
+    uv, _ = project(fr1.gt_poses[0], fr1.camera.pinhole, fr1.points(0, pixels))
+    assert np.abs(fr1.camera.distort_points(uv) - pixels).max() < 1e-9
+    with pytest.raises(ConfigError, match="k2"):
+        open_source("synthetic:handheld?frames=2&k1=0.262&k2=-0.953")
 
 
 def test_the_radial_distortion_of_a_rendered_camera_is_recovered(distorted, tmp_path):
