@@ -6,7 +6,9 @@ Cases (:data:`CASES`): KITTI odometry 07 (160 frames, true focal 707.09 px, prin
 the centre), 7-Scenes redkitchen (600 frames; the dataset's nominal 585 px), the driving clip (268 frames;
 ``--camera 721`` as its known calibration, no ground truth), and rendered sequences with exact intrinsics:
 the hand-held room (150 frames) at focal lengths 0.5x, 1x and 2x the image width (320, 640, 1280 px) and
-with barrel distortion (500 px, k1 = -0.1), a drive round a city block (forward motion with four turns,
+with barrel distortion (500 px, k1 = -0.1), with pincushion distortion as strong as TUM freiburg1's
+(k1 = 0.25) and with freiburg1's own lens (k1 0.262, k2 -0.953, k3 1.163; its ``k1`` column is the truth's k1
+only), a drive round a city block (forward motion with four turns,
 700 px), pure forward motion and an orbit round the room's cube, looking at it (degenerate cases: the
 estimate must say it is weak). Seeds 0 .. N-1 go
 to ``SlamConfig.seed`` and to the synthetic spec's seed.
@@ -76,6 +78,8 @@ CASES = [
     Case("syn-block-f700", "synthetic:block-loop?frames=300&focal=700" + _SYN, 700.0),
     Case("syn-forward", "synthetic:forward?frames=100" + _SYN, 500.0),
     Case("syn-room-k1", "synthetic:handheld?frames=150&k1=-0.1" + _SYN, 500.0, k1=-0.1),
+    Case("syn-room-k1+0.25", "synthetic:handheld?frames=150&k1=0.25" + _SYN, 500.0, k1=0.25),
+    Case("syn-room-fr1lens", "synthetic:handheld?frames=150&k1=0.262&k2=-0.953&k3=1.163" + _SYN, 500.0, k1=0.262),
     Case("syn-orbit", "synthetic:orbit?frames=150" + _SYN, 500.0),
 ]
 MODES = ("known", "auto", "auto-nofinal")

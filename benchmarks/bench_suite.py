@@ -3,6 +3,8 @@
 
 Cases (:data:`CASES`): KITTI odometry 07 at frame skip 1, 2, 3; 7-Scenes redkitchen (600 frames) at skip
 1, 3, 5; the driving clip ``video/test_kitti984.mp4`` with ``camera="721"`` (the CLI's ``--camera 721``);
+uncalibrated input (issue 39): KITTI 07 as a plain image folder (no calibration: self-calibrated; its ground
+truth paired frame by frame from the KITTI layout) and the driving clip with ``camera="auto"``;
 the two tiny TUM sequences (the ground-truth-only TUM folders are listed as skipped: no images); and the
 synthetic hard motions of :mod:`slamkit.sources.motions`, each at two strengths. Every case runs once per
 seed (``--seeds N``: seeds 0 .. N-1 go to ``SlamConfig.seed`` and, for synthetic cases, to the spec's
@@ -17,6 +19,7 @@ Columns, per run (from ``Slam.summary()``, ``Slam.trajectory()`` and :func:`slam
 * ATE (m): RMSE after Sim(3) alignment of the largest segment's trajectory to ground truth (= evo
   ``evo_ape -as``); keyframe ATE (m): the same over its keyframes only (what ORB-SLAM2's monocular examples
   save: ``KeyFrameTrajectory.txt``); relocalizations: summed over segments;
+* fx (px), k1: the run's final camera (with self-calibration, the estimate: compare KITTI 07's 707.09 px);
 * fps: frames / wall seconds of the whole run (opening the source to the end of ``run()``, image reading
   and the final bundle adjustment included; not the saving); CPU s/frame: process CPU seconds (all
   threads) / frames -- the steadier measure when other jobs share the machine.
@@ -83,6 +86,10 @@ class Case:
     quick: bool = False
     """part of ``--quick``"""
     what: str = ""
+    ground_truth: tuple = ()
+    """(spec relative to ``../shared/data``, ``open_source`` kw) of a source of the same frames that carries the
+    ground truth, paired frame by frame with the case's (a plain image folder has none of its own); empty: the
+    case's source's own."""
 
     @property
     def synthetic(self) -> bool:
@@ -100,6 +107,12 @@ CASES = [
            what=f"7-Scenes redkitchen frames 0-599, frame skip {k}") for k in (1, 3, 5)),
     Case("video-kitti984", "real", "video/test_kitti984.mp4", 1, config={"camera": "721"}, quick=True,
          what="the source paper's driving clip, 268 frames 1242x375, --camera 721"),
+    Case("kitti-07/folder", "real", "kitti-odometry/sequences/07/image_0", 1,
+         ground_truth=("kitti-odometry", {"sequence": "07"}),
+         what="KITTI odometry 07 frames 0-159 as a plain image folder: no calibration, the camera self-calibrated "
+              "(true fx 707.09)"),
+    Case("video-kitti984/auto", "real", "video/test_kitti984.mp4", 1, config={"camera": "auto"},
+         what="the driving clip, 268 frames 1242x375, --camera auto (self-calibrated; ~721 px)"),
     Case("tum-fr1-desk-9", "tiny", "tum/rgbd_dataset_freiburg1_desk_9frames", what="TUM fr1/desk, 9 frames"),
     Case("tum-fr3-office-4", "tiny", "tum/rgbd_dataset_freiburg3_long_office_household_4frames",
          what="TUM fr3/long_office_household, 4 frames 3.3 s apart"),
@@ -123,9 +136,10 @@ CASES = [
 ]
 
 RUN_COLUMNS = ["row", "case", "skip", "seed", "status", "frames", "posed_pct", "segments", "largest_pct",
-               "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame", "wall_s", "keyframes", "error"]
+               "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame", "wall_s", "keyframes", "focal_px",
+               "k1", "error"]
 MEAN_KEYS = ["posed_pct", "segments", "largest_pct", "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame",
-             "wall_s", "keyframes"]
+             "wall_s", "keyframes", "focal_px", "k1"]
 
 
 def select_cases(cases: list[Case], pattern: str | None, quick: bool) -> list[Case]:
@@ -148,6 +162,24 @@ def _absent(case: Case) -> str | None:
     return None
 
 
+def _ground_truth(case: Case, source):
+    """The ground truth of ``source`` (the case's), or with ``case.ground_truth`` that of another source of
+    the same frames, paired by position and given the timestamps of ``source``."""
+    if not case.ground_truth:
+        return source.ground_truth()
+    import numpy as np
+
+    from slamkit import SlamkitError, Trajectory, open_source
+
+    spec, kw = case.ground_truth
+    ref = open_source(str(DATA / spec), **kw)
+    if ref.gt_poses is None or len(ref) != len(source):
+        raise SlamkitError(f"{spec}: {len(ref)} frames, {'no' if ref.gt_poses is None else 'a'} ground truth; "
+                           f"the case's source has {len(source)} frames")
+    ok = np.isfinite(ref.gt_poses).all(axis=(1, 2))
+    return Trajectory(np.asarray(source.timestamps)[ok], ref.gt_poses[ok])
+
+
 def run_one(case: Case, seed: int, out_dir: Path | None = None) -> dict:
     """Run slamkit once on ``case`` with ``seed``; the run's row (see the module docstring). A raised
     exception becomes ``status="error"`` with the message; ``out_dir`` receives ``Slam.save``."""
@@ -167,12 +199,13 @@ def run_one(case: Case, seed: int, out_dir: Path | None = None) -> dict:
         slam = Slam(source, config)
         slam.run()
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        s, traj, gt = slam.summary(), slam.trajectory(), source.ground_truth()
+        s, traj, gt = slam.summary(), slam.trajectory(), _ground_truth(case, source)
         n = s["frames"]
         row |= {"status": "ok", "frames": n, "posed_pct": 100.0 * s["frames_posed"] / n,
                 "segments": len(s["segments"]), "largest_pct": 100.0 * len(traj) / n,
                 "relocalizations": s["relocalizations"], "fps": n / wall, "cpu_s_per_frame": cpu / n,
-                "wall_s": wall, "keyframes": s["keyframes"], "ate_m": None, "ate_kf_m": None}
+                "wall_s": wall, "keyframes": s["keyframes"], "ate_m": None, "ate_kf_m": None,
+                "focal_px": slam.camera.fx, "k1": slam.camera.dist[0]}
         if gt is None:
             row["error"] = "no ground truth"
         elif len(traj) < 3:
@@ -260,7 +293,8 @@ def _progress(r: dict) -> str:
         return f"{head} ({r['error']})"
     ate_s = "-" if r["ate_m"] is None else f"{r['ate_m']:.4g} m"
     return (f"{head}, posed {r['posed_pct']:.1f} %, {r['segments']} segment(s), largest {r['largest_pct']:.1f} %, "
-            f"ATE {ate_s}, {r['relocalizations']} reloc, {r['fps']:.1f} fps, {r['cpu_s_per_frame']:.3f} CPU s/frame")
+            f"ATE {ate_s}, {r['relocalizations']} reloc, {r['fps']:.1f} fps, {r['cpu_s_per_frame']:.3f} CPU s/frame, "
+            f"fx {r['focal_px']:.1f} px, k1 {r['k1']:.3f}")
 
 
 # ----------------------------------------------------------------------------------------- aggregation
@@ -311,16 +345,17 @@ def _cell(row: dict, key: str, fmt: str, scale: float = 1.0) -> str:
 def markdown(rows: list[dict]) -> str:
     """The per-case table (means ± standard errors over seeds)."""
     head = ["case", "skip", "frames", "runs", "posed (%)", "segments", "largest (%)", "ATE (m)", "keyframe ATE (m)",
-            "relocalizations", "fps", "CPU s/frame", "seeds", "notes"]
+            "relocalizations", "fps", "CPU s/frame", "fx (px)", "k1", "seeds", "notes"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if r["status"] == "skipped":
-            cells = [r["case"], str(r["skip"]), "-", "skipped"] + ["-"] * 9 + [r["error"]]
+            cells = [r["case"], str(r["skip"]), "-", "skipped"] + ["-"] * 11 + [r["error"]]
         else:
             cells = [r["case"], str(r["skip"]), str(r["frames"] or "-"), r["status"],
                      _cell(r, "posed_pct", ".1f"), _cell(r, "segments", ".2g"), _cell(r, "largest_pct", ".1f"),
-                     _cell(r, "ate_m", ".3g"), _cell(r, "ate_kf_m", ".3g"), _cell(r, "relocalizations", ".2g"), _cell(r, "fps", ".1f"),
-                     _cell(r, "cpu_s_per_frame", ".3f"), r["seed"], r["error"][:200]]
+                     _cell(r, "ate_m", ".3g"), _cell(r, "ate_kf_m", ".3g"), _cell(r, "relocalizations", ".2g"),
+                     _cell(r, "fps", ".1f"), _cell(r, "cpu_s_per_frame", ".3f"), _cell(r, "focal_px", ".1f"),
+                     _cell(r, "k1", ".3f"), r["seed"], r["error"][:200]]
         lines.append("| " + " | ".join(c.replace("|", "/") for c in cells) + " |")
     return "\n".join(lines)
 

@@ -270,7 +270,7 @@ class Slam:
             return cal
         self.loader.drain()  # the source is read by one thread at a time
         t, cpu = time.perf_counter(), time.process_time()
-        self._use_focal(first_estimate(cal, self.source, self.indices, self.camera))
+        self._use_camera(first_estimate(cal, self.source, self.indices, self.camera))
         self.state.add_timings({"calibrate": time.perf_counter() - t})
         self.state.wall_time += time.perf_counter() - t
         self.state.cpu_time += time.process_time() - cpu
@@ -291,7 +291,7 @@ class Slam:
     def _refined(self, slam_map: SlamMap, final: bool = False, k1: float = 0.0, before: float | None = None) -> None:
         """After a refining BA: its focal length (and ``k1``) used from now on, and recorded by the calibrator."""
         self._use_camera(refined_camera(self.camera, slam_map, k1))
-        self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final, k1, before)
+        self.calibrator.refined(self.camera.fx, slam_map.num_keyframes, final, self.camera.dist[0], before)
 
     # ----------------------------------------------------------------- initialization
     def _initialize(self, ff: FrameFeatures, record: FrameRecord, timings: dict) -> StepResult:

@@ -43,10 +43,12 @@ def choose_camera(config: SlamConfig, source_camera: Intrinsics) -> tuple[Intrin
     return source_camera, "the source's calibration", None
 
 
-def first_estimate(cal: SelfCalibrator, source, indices: Sequence[int], camera: Intrinsics) -> float:
-    """Self-calibration's first phase: the focal length (pixels) from the first ``window_frames`` frames of
-    ``indices`` (unreadable ones left to the run, which skips them with their reason); a weak estimate falls
-    back to ``fallback_fov_deg`` (or the sources' guess when it is 0)."""
+def first_estimate(cal: SelfCalibrator, source, indices: Sequence[int], camera: Intrinsics) -> Intrinsics:
+    """Self-calibration's first phase: ``camera`` with the focal length (pixels) from the first
+    ``window_frames`` frames of ``indices`` (unreadable ones left to the run, which skips them with their
+    reason) and the radial coefficient found with it (``first_radial``: the keypoints are undistorted with it
+    from now on); a weak estimate falls back to ``fallback_fov_deg`` (or the sources' guess when it is 0),
+    without distortion."""
     for cursor in range(min(len(indices), cal.config.window_frames)):
         try:
             frame = source[int(indices[cursor])]
@@ -56,16 +58,24 @@ def first_estimate(cal: SelfCalibrator, source, indices: Sequence[int], camera: 
     w, h, fov = camera.width, camera.height, cal.config.fallback_fov_deg
     guess = Intrinsics.from_focal(w, h).fx if not fov else max(w, h) / 2 / math.tan(math.radians(fov / 2))
     cal.estimate(guess)
-    return float(cal.focal)
+    return with_radial(clamped(camera, float(cal.focal)), cal.k1)
+
+
+def with_radial(camera: Intrinsics, k1: float) -> Intrinsics:
+    """``camera`` with the one radial coefficient ``k1`` (OpenCV's, at its focal length) and no other."""
+    return replace(camera, dist=(float(k1), 0.0, 0.0, 0.0, 0.0))
 
 
 def clamped(camera: Intrinsics, focal: float, cx: float | None = None, cy: float | None = None) -> Intrinsics:
     """``camera`` with one focal length for both axes (kept inside the sane range of
-    :func:`~slamkit.camera.focal_range`) and, when given, a new principal point."""
+    :func:`~slamkit.camera.focal_range`) and, when given, a new principal point. A radial coefficient ``k1``
+    scales with the focal length squared, so the keypoints are undistorted to the same pixels as before (the
+    map's keypoints and the next frames' agree)."""
     lo, hi = focal_range(camera.width, camera.height)
     focal = min(max(float(focal), lo * 1.001), hi * 0.999)
-    return replace(camera, fx=focal, fy=focal, cx=camera.cx if cx is None else float(cx),
-                   cy=camera.cy if cy is None else float(cy))
+    out = replace(camera, fx=focal, fy=focal, cx=camera.cx if cx is None else float(cx),
+                  cy=camera.cy if cy is None else float(cy))
+    return with_radial(out, camera.dist[0] * (focal / camera.fx) ** 2) if camera.dist[0] else out
 
 
 def refines(cal: SelfCalibrator | None, slam_map: SlamMap, final: bool = False) -> bool:
@@ -75,12 +85,13 @@ def refines(cal: SelfCalibrator | None, slam_map: SlamMap, final: bool = False) 
 
 def refined_camera(camera: Intrinsics, slam_map: SlamMap, k1: float = 0.0) -> Intrinsics:
     """After a refining BA (its map's camera PINHOLE again): one focal length for both axes, written back to
-    the map, with the radial coefficient ``k1`` the final BA estimated, which the run's camera carries
+    the map, with the radial coefficient ``k1`` the final BA estimated on the keypoints (already undistorted
+    with the camera's own ``k1``: to first order the two add up), which the run's camera carries
     (``camera.txt``, export, ``--camera RUN_DIR``; no frame is read after the final BA)."""
     fx, fy, cx, cy = (float(v) for v in slam_map.pycolmap_camera.params)
     camera = clamped(camera, 0.5 * (fx + fy), cx, cy)
     slam_map.set_focal(camera.fx)
-    return replace(camera, dist=(k1, 0.0, 0.0, 0.0, 0.0)) if k1 else camera
+    return with_radial(camera, camera.dist[0] + k1) if k1 else camera
 
 
 def use_radial(seg: Segment, max_radial: float) -> float | None:
@@ -133,5 +144,5 @@ def describe_camera(camera: Intrinsics, origin: str, cal: SelfCalibrator | None)
     return f"fx={camera.fx:.1f} fy={camera.fy:.1f} cx={camera.cx:.1f} cy={camera.cy:.1f}, {how}"
 
 
-__all__ = ["choose_camera", "first_estimate", "clamped", "refines", "refined_camera", "use_radial",
+__all__ = ["choose_camera", "first_estimate", "with_radial", "clamped", "refines", "refined_camera", "use_radial",
            "final_global_ba", "camera_report", "describe_camera"]

@@ -60,6 +60,7 @@ from .io.saved import check_session
 from .local_map import LocalMap
 from .loop_verification import ConsistentGroup
 from .map import CAMERA_ID, Keyframe, SlamMap, graph_pairs, max_point3D_id
+from .run_camera import clamped, with_radial
 from .map import max_point3D_id as _max_point3D_id  # noqa: F401  (its name here before it moved to map)
 from .stages.initializer import InitializerWindow
 from .state import FrameRecord, RecentPoints, Segment, SlamState
@@ -361,7 +362,8 @@ def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
         if slam.calibrator.focal is not None:
             seg = slam.state.segment or slam.state.main_segment  # its map holds the principal point in use
             cam = seg.slam_map.camera if seg is not None else slam.camera
-            slam._use_focal(slam.calibrator.focal, cam.cx, cam.cy)
+            slam._use_camera(with_radial(clamped(slam.camera, slam.calibrator.focal, cam.cx, cam.cy),
+                                         slam.calibrator.k1))
     slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(

@@ -78,7 +78,7 @@ def test_select_cases():
     assert names == ["kitti-07/skip2", "7scenes/skip3", "video-kitti984", "syn-forward-0.5", "syn-fast-yaw-10",
                      "syn-jerky-30"]
     assert [c.name for c in bench_suite.select_cases(bench_suite.CASES, "kitti*,syn-jerky-10", False)] == [
-        "kitti-07/skip1", "kitti-07/skip2", "kitti-07/skip3", "syn-jerky-10"]
+        "kitti-07/skip1", "kitti-07/skip2", "kitti-07/skip3", "kitti-07/folder", "syn-jerky-10"]
 
 
 def test_scheduler_reports_errors_timeouts_and_absent_data_as_rows(tmp_path):

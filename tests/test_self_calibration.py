@@ -148,6 +148,8 @@ def test_a_resumed_run_keeps_the_estimate_and_equals_an_uninterrupted_one(estima
 
 TRUE_K1 = -0.1
 """Barrel distortion of a wide phone or action camera: the corners of the 640x480 image move 16 px inward."""
+FR1_LENS = "k1=0.262&k2=-0.953&k3=1.163"
+"""TUM freiburg1's colour camera (its published k1 k2 k3; p1, p2 left out)."""
 
 
 @pytest.fixture(scope="module")
@@ -174,6 +176,13 @@ def test_the_rendered_distortion_is_exact():
     assert np.abs(a[:60, :60] - b[:60, :60]).mean() > 10
     with pytest.raises(ConfigError, match="k1"):
         open_source("synthetic:handheld?frames=2&k1=0.9")
+    # TUM freiburg1's lens (k1, k2, k3): exact too; a lens that folds back inside the image is refused
+    fr1 = open_source(f"synthetic:handheld?frames=2&{FR1_LENS}")
+    assert fr1.camera.dist == (0.262, -0.953, 0, 0, 1.163)
+    uv, _ = project(fr1.gt_poses[0], fr1.camera.pinhole, fr1.points(0, pixels))
+    assert np.abs(fr1.camera.distort_points(uv) - pixels).max() < 1e-9
+    with pytest.raises(ConfigError, match="k2"):
+        open_source("synthetic:handheld?frames=2&k1=0.262&k2=-0.953")
 
 
 def test_the_radial_distortion_of_a_rendered_camera_is_recovered(distorted, tmp_path):
@@ -203,6 +212,33 @@ def test_the_radial_distortion_of_a_rendered_camera_is_recovered(distorted, tmp_
     assert exported.compute_mean_reprojection_error() < 1.0
 
 
+STRONG_K1 = 0.25
+"""Pincushion distortion as strong as TUM freiburg1's lens (k1 0.26, issue 39): the corners of the 640x480 image
+move 64 px outward."""
+
+
+def test_the_first_frames_find_the_radial_coefficient_and_an_unbiased_focal():
+    grays = _grays(f"synthetic:handheld?frames=60&k1={STRONG_K1:g}&noise=1", 60)
+    pinhole = estimate_focal(grays, SelfCalibrationConfig(first_radial=0))
+    est = estimate_focal(grays)
+    assert pinhole.focal < 0.95 * 500 and pinhole.k1 == 0  # the pinhole model absorbs the distortion
+    assert abs(est.focal / 500 - 1) < 0.03 and est.k1 == pytest.approx(STRONG_K1, abs=0.06), est.describe()
+    assert f"k1={est.k1:.3f}" in est.describe()
+    undistorted = estimate_focal(_grays("synthetic:handheld?frames=60&noise=1", 60))
+    assert abs(undistorted.focal / 500 - 1) < 0.02 and abs(undistorted.k1) < 0.02, undistorted.describe()
+
+
+def test_the_focal_of_a_strongly_distorted_lens_ends_within_3_percent():
+    slam = Slam(f"synthetic:handheld?frames=60&k1={STRONG_K1:g}&noise=1",
+                CONFIG.with_overrides(**{"self_calibration.window_frames": 40}))
+    slam.run()
+    cam = slam.camera
+    assert abs(cam.fx / 500 - 1) < 0.03, slam.describe_camera()
+    assert cam.dist[0] == pytest.approx(STRONG_K1, abs=0.03) and slam.calibrator.k1 == cam.dist[0]
+    assert len(slam.trajectory()) == len(slam)
+    assert ate(slam.source.ground_truth(), slam.trajectory()).rmse < 0.02
+
+
 def test_a_final_bundle_adjustment_that_moves_the_focal_far_is_reported_weak():
     cal = SelfCalibrator(SelfCalibrationConfig(window_frames=40))
     for g in _grays("synthetic:handheld?frames=40&focal=640", 40):
@@ -219,8 +255,9 @@ def test_a_final_bundle_adjustment_that_moves_the_focal_far_is_reported_weak():
 
 
 def test_without_refine_radial_the_final_camera_stays_pinhole():
+    """Neither the first frames (``first_radial``) nor the final BA (``refine_radial``) estimate distortion."""
     slam = Slam(f"synthetic:handheld?frames=60&k1={TRUE_K1:g}",
-                CONFIG.with_overrides(**{"self_calibration.refine_radial": False,
+                CONFIG.with_overrides(**{"self_calibration.refine_radial": False, "self_calibration.first_radial": 0,
                                          "self_calibration.window_frames": 40}))
     slam.run()
     assert not slam.camera.has_distortion and slam.calibrator.k1 == 0

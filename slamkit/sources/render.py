@@ -319,3 +319,36 @@ def raycast(quads: Sequence[Quad], pose: np.ndarray, intrinsics: Intrinsics, pix
     pts = C + best[:, None] * rays_w
     pts[idx < 0] = np.nan
     return pts, best, idx
+
+
+def undistort_radial_exact(camera: Intrinsics, xy: np.ndarray) -> np.ndarray:
+    """(N, 2) pixels of a camera with radial distortion ``k1, k2, k3`` -> (N, 2) pixels of its pinhole part,
+    exact to rounding (the fixed point of ``x = x_d / (1 + k1 r^2 + k2 r^4 + k3 r^6)``; OpenCV's
+    ``undistortPoints`` stops after 5 steps, 1e-3 px off in the corners at k1 = -0.1). Tangential
+    coefficients are ignored."""
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    xd, yd = (xy[:, 0] - camera.cx) / camera.fx, (xy[:, 1] - camera.cy) / camera.fy
+    x, y = xd.copy(), yd.copy()
+    k1, k2, k3 = camera.dist[0], camera.dist[1], camera.dist[4]
+    for _ in range(200):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        x, y = xd / radial, yd / radial
+    return np.column_stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy])
+
+
+def distortion_maps(camera: Intrinsics) -> tuple[Intrinsics, np.ndarray, np.ndarray]:
+    """(pinhole canvas, map_x, map_y) to render a radially distorted ``camera``: the canvas is the pinhole
+    part of the camera grown to cover every pixel's undistorted place (barrel distortion sees wider), and
+    ``cv2.remap(render, map_x, map_y)`` samples it at those places."""
+    w, h = camera.width, camera.height
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    und = undistort_radial_exact(camera, np.column_stack([u.ravel(), v.ravel()]))
+    x0, y0 = np.floor(und.min(axis=0)) - 2
+    x1, y1 = np.ceil(und.max(axis=0)) + 2
+    x0, y0 = min(x0, 0.0), min(y0, 0.0)
+    canvas = Intrinsics(int(max(x1 + 1, w) - x0), int(max(y1 + 1, h) - y0), camera.fx, camera.fy,
+                        camera.cx - x0, camera.cy - y0)
+    map_x = (und[:, 0] - x0).reshape(h, w).astype(np.float32)
+    map_y = (und[:, 1] - y0).reshape(h, w).astype(np.float32)
+    return canvas, map_x, map_y

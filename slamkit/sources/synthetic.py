@@ -33,6 +33,8 @@ city block, a 250 m loop: :mod:`slamkit.sources.block`). Parameters of every mot
     focal=F      focal length in pixels (fx = fy = F) instead of the camera's own (self-calibration tests)
     k1=K         radial distortion of the images (OpenCV's k1, default 0): each frame is rendered pinhole
                  over the distorted image's field of view and resampled (self-calibration tests)
+    k2=K, k3=K   higher radial coefficients (OpenCV's, default 0), e.g. TUM freiburg1's lens:
+                 ``k1=0.262&k2=-0.953&k3=1.163``
 
 plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
 ``jitter``, ``weave``, ``sway``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion
@@ -78,6 +80,7 @@ from .corridor import corridor_scene, corridor_walk
 from .folder import image_size, resolve_camera
 from .motions import (DEFAULT_FRAMES, MAX_FRAMES, MOTIONS, _check_positive, default_motion, forward,  # noqa: F401
                       handheld, loop, orbit, rotation, sideways, translate_then_rotate)
+from .render import distortion_maps, undistort_radial_exact
 from .scene import Rendering, Scene, default_room, project
 from .street import street_drive, street_scene
 
@@ -129,8 +132,8 @@ class SyntheticSource(FrameSource):
         fps = _check_positive("fps", fps)
         if not (math.isfinite(noise) and noise >= 0):
             raise ConfigError(f"noise must be >= 0 grey levels (got {noise})")
-        if any(intrinsics.dist[1:]) or not -0.5 <= intrinsics.dist[0] <= 0.5:
-            raise ConfigError("SyntheticSource: only one radial coefficient, k1 in [-0.5, 0.5], is rendered "
+        if any(intrinsics.dist[2:4]) or not all(-1.5 <= k <= 1.5 for k in intrinsics.dist):
+            raise ConfigError("SyntheticSource: only radial distortion (k1, k2, k3 in [-1.5, 1.5]) is rendered "
                               f"(got dist={tuple(intrinsics.dist)})")
         keep = select(len(poses), frame_skip, max_frames)
         self.name = name
@@ -144,7 +147,7 @@ class SyntheticSource(FrameSource):
         self.timestamps = keep / fps
         self.gt_poses = poses[keep].copy()
         self._noise_field: np.ndarray | None = None
-        self._distortion = _distortion_maps(intrinsics) if intrinsics.has_distortion else None
+        self._distortion = distortion_maps(intrinsics) if intrinsics.has_distortion else None
 
     def rendering(self, i: int) -> Rendering:
         """Noise-free :class:`~slamkit.sources.scene.Rendering` (image, exact depth, quad ids) of frame i, by
@@ -158,7 +161,7 @@ class SyntheticSource(FrameSource):
     def points(self, i: int, pixels: np.ndarray) -> np.ndarray:
         """(N, 3) exact world points seen at (N, 2) pixel coordinates of delivered frame ``i`` (of its images,
         distortion included)."""
-        pixels = _undistort_radial(self.camera, pixels) if self.camera.has_distortion else pixels
+        pixels = undistort_radial_exact(self.camera, pixels) if self.camera.has_distortion else pixels
         return self.scene.points(self.gt_poses[i], self.camera.pinhole, pixels)
 
     def flow(self, i: int, j: int | None = None, step: int = 20) -> np.ndarray:
@@ -201,40 +204,10 @@ class SyntheticSource(FrameSource):
         return self.image(i), None
 
 
-def _undistort_radial(camera: Intrinsics, xy: np.ndarray) -> np.ndarray:
-    """(N, 2) pixels of a camera with radial distortion ``k1`` -> (N, 2) pixels of its pinhole part, exact to
-    rounding (the fixed point of ``x = x_d / (1 + k1 r^2)``; OpenCV's ``undistortPoints`` stops after 5
-    steps, 1e-3 px off in the corners at k1 = -0.1)."""
-    xy = np.asarray(xy, np.float64).reshape(-1, 2)
-    xd, yd = (xy[:, 0] - camera.cx) / camera.fx, (xy[:, 1] - camera.cy) / camera.fy
-    x, y = xd.copy(), yd.copy()
-    for _ in range(200):
-        radial = 1 + camera.dist[0] * (x * x + y * y)
-        x, y = xd / radial, yd / radial
-    return np.column_stack([camera.fx * x + camera.cx, camera.fy * y + camera.cy])
-
-
-def _distortion_maps(camera: Intrinsics) -> tuple[Intrinsics, np.ndarray, np.ndarray]:
-    """(pinhole canvas, map_x, map_y) to render a radially distorted ``camera``: the canvas is the pinhole
-    part of the camera grown to cover every pixel's undistorted place (barrel distortion sees wider), and
-    ``cv2.remap(render, map_x, map_y)`` samples it at those places."""
-    w, h = camera.width, camera.height
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    und = _undistort_radial(camera, np.column_stack([u.ravel(), v.ravel()]))
-    x0, y0 = np.floor(und.min(axis=0)) - 2
-    x1, y1 = np.ceil(und.max(axis=0)) + 2
-    x0, y0 = min(x0, 0.0), min(y0, 0.0)
-    canvas = Intrinsics(int(max(x1 + 1, w) - x0), int(max(y1 + 1, h) - y0), camera.fx, camera.fy,
-                        camera.cx - x0, camera.cy - y0)
-    map_x = (und[:, 0] - x0).reshape(h, w).astype(np.float32)
-    map_y = (und[:, 1] - y0).reshape(h, w).astype(np.float32)
-    return canvas, map_x, map_y
-
-
 def synthetic_source(motion: str = "default", *, frames: int | None = None, seed: int = 0,
                      fps: float = DEFAULT_FPS, noise: float = 0.0, scale: float = 1.0, wide: int = 0,
-                     focal: float | None = None, k1: float = 0.0, frame_skip: int = 1, max_frames: int | None = None,
-                     **motion_kw) -> SyntheticSource:
+                     focal: float | None = None, k1: float = 0.0, k2: float = 0.0, k3: float = 0.0,
+                     frame_skip: int = 1, max_frames: int | None = None, **motion_kw) -> SyntheticSource:
     """A :class:`SyntheticSource` for a named motion of :data:`MOTIONS` (in the default room) or of
     :data:`SCENE_MOTIONS` (in its own scene).
 
@@ -265,17 +238,21 @@ def synthetic_source(motion: str = "default", *, frames: int | None = None, seed
             camera = replace(camera, fx=float(focal), fy=float(focal))
         except CalibrationError as e:
             raise ConfigError(f"focal={focal:g}: {e}") from None
-    if k1:
-        if not -0.5 <= float(k1) <= 0.5:
-            raise ConfigError(f"k1 must be in [-0.5, 0.5] (got {k1})")
-        camera = replace(camera, dist=(float(k1), 0.0, 0.0, 0.0, 0.0))
+    if k1 or k2 or k3:
+        if not -0.5 <= float(k1) <= 0.5 or not all(-1.5 <= float(k) <= 1.5 for k in (k2, k3)):
+            raise ConfigError(f"k1 must be in [-0.5, 0.5], k2 and k3 in [-1.5, 1.5] (got {k1}, {k2}, {k3})")
+        camera = replace(camera, dist=(float(k1), float(k2), 0.0, 0.0, float(k3)))
+        try:
+            camera.check_distortion("synthetic camera")
+        except CalibrationError as e:
+            raise ConfigError(str(e)) from None
     poses = fn(**kw)
     label = motion if not motion_kw and frames is None else f"{motion}({len(poses)})"
     return SyntheticSource(make_scene(), poses, camera, fps=fps, seed=seed, noise=noise, frame_skip=frame_skip,
                            max_frames=max_frames, name=f"synthetic/{label}")
 
 
-_COMMON = ("frames", "seed", "fps", "noise", "scale", "wide", "focal", "k1")
+_COMMON = ("frames", "seed", "fps", "noise", "scale", "wide", "focal", "k1", "k2", "k3")
 
 
 def _motion(name: str) -> tuple[Callable[..., np.ndarray], Callable[[], Scene]]:
