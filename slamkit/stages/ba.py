@@ -16,7 +16,7 @@ import pycolmap
 
 from ..errors import ConfigError, check_fields
 from ..map import BA_LOSSES as _LOSSES, CAMERA_ID, SlamMap, bundle_adjustment_options, keypoint_scales
-from .weighted_ba import weighted_adjust
+from ..weighted_ba import weighted_adjust
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,7 @@ class BundleAdjustmentConfig:
     """Local BA's observation weights. "none": COLMAP's BA, every observation alike with ``loss``. "level":
     ORB-SLAM's, each observation's information 1/sigma^2 of its keypoint's level
     (:func:`~slamkit.map.keypoint_scales`), Huber at sqrt(``outlier_chi2``) on the whitened error
-    (:mod:`slamkit.stages.weighted_ba`); it recovers a synthetic scene with pyramid noise closer to the truth
+    (:mod:`slamkit.weighted_ba`); it recovers a synthetic scene with pyramid noise closer to the truth
     (tests/test_weighted_ba.py) but lost on the real rows, at 2-3x local BA's time: KITTI 07 skip 1 0.396 m
     against 0.373, 7-Scenes skip 5 3.36 against 2.93 cm (3 seeds; benchmarks/HISTORY.md). Falls back
     to "none" when intrinsics are refined."""

@@ -22,7 +22,7 @@ import numpy as np
 import pycolmap
 import pyceres
 
-from ..map import CAMERA_ID, SlamMap, keypoint_scales
+from .map import CAMERA_ID, SlamMap, keypoint_scales
 
 _REPROJ_COST = pycolmap._core.cost_functions.ReprojErrorCost
 UNIT_QUATERNION_WEIGHT = 1e4
