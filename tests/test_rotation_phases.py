@@ -1,0 +1,62 @@
+"""Issue 42's rendered sequences: a pan from one place (``pure-rotation``) and a clip that starts by turning
+(``turn-then-walk``), with exact ground truth and checked parameters."""
+
+import math
+
+import numpy as np
+import pytest
+
+from slamkit.errors import ConfigError
+from slamkit.sources import open_source
+from slamkit.sources.motions import TURN_FRAMES, pure_rotation, turn_then_walk
+from slamkit.sources.scene import default_room
+from slamkit.sources.synthetic import DEFAULT_CAMERA
+
+
+def _yaw_deg(poses: np.ndarray) -> np.ndarray:
+    """(N,) heading of the optical axis in degrees, positive to the left (about +z), 0 facing +y."""
+    z = poses[:, :3, 2]
+    return np.degrees(np.arctan2(-z[:, 0], z[:, 1]))
+
+
+def test_pure_rotation_pans_from_one_place():
+    poses = pure_rotation(150, amplitude=60, swings=2, tilt=8)
+    np.testing.assert_array_equal(poses[:, :3, 3], np.broadcast_to(poses[0, :3, 3], (150, 3)))
+    yaw = _yaw_deg(poses)
+    assert yaw.max() == pytest.approx(60, abs=0.5) and yaw.min() == pytest.approx(-60, abs=0.5)
+    pitch = np.degrees(np.arcsin(poses[:, 2, 2]))
+    assert -13.5 < pitch.min() < -12 and 2 < pitch.max() < 3.5
+    room, small = default_room(), DEFAULT_CAMERA.scaled(0.125)
+    assert all(np.isfinite(room.depth(T, small)).all() for T in poses[::5])
+
+
+def test_turn_then_walk_turns_in_place_for_two_seconds_then_walks():
+    src = open_source("synthetic:turn-then-walk?frames=150&seed=1")
+    assert TURN_FRAMES == 60 and src.timestamps[TURN_FRAMES] == pytest.approx(2.0)
+    poses = src.gt_poses
+    np.testing.assert_array_equal(poses[:61, :3, 3], np.broadcast_to(poses[0, :3, 3], (61, 3)))
+    steps = np.linalg.norm(np.diff(poses[60:, :3, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 0.015, rtol=1e-9)
+    yaw = _yaw_deg(poses)
+    assert yaw[:61].max() == pytest.approx(45, abs=1) and yaw[:61].min() == pytest.approx(-45, abs=1)
+    np.testing.assert_allclose(yaw[60:], 0.0, atol=1e-9)  # facing the front wall while walking
+    turn = np.degrees([math.acos(np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1) / 2, -1, 1))
+                       for a, b in zip(poses[:60], poses[1:61])])
+    assert turn.min() > 0  # turning all the time
+
+
+def test_short_turn_then_walk_turns_for_half_the_frames():
+    poses = turn_then_walk(40)
+    np.testing.assert_array_equal(poses[:21, :3, 3], np.broadcast_to(poses[0, :3, 3], (21, 3)))
+    assert np.linalg.norm(poses[21, :3, 3] - poses[20, :3, 3]) == pytest.approx(0.015)
+
+
+@pytest.mark.parametrize("spec, what", [
+    ("synthetic:pure-rotation?amplitude=90", "amplitude"), ("synthetic:pure-rotation?swings=0", "swings"),
+    ("synthetic:pure-rotation?tilt=-1", "tilt"), ("synthetic:pure-rotation?speed=1", "speed"),
+    ("synthetic:turn-then-walk?frames=50&turn_frames=50", "turn_frames"),
+    ("synthetic:turn-then-walk?turn_frames=2.5", "turn_frames"), ("synthetic:turn-then-walk?speed=0", "speed"),
+    ("synthetic:turn-then-walk?amplitude=70", "amplitude")])
+def test_bad_rotation_phase_parameters(spec, what):
+    with pytest.raises(ConfigError, match=what):
+        open_source(spec)
