@@ -31,7 +31,7 @@ def test_pure_rotation_pans_from_one_place():
 
 
 def test_turn_then_walk_turns_in_place_for_two_seconds_then_walks():
-    src = open_source("synthetic:turn-then-walk?frames=150&seed=1")
+    src = open_source("synthetic:turn-then-walk?frames=150&amplitude=45&seed=1")
     assert TURN_FRAMES == 60 and src.timestamps[TURN_FRAMES] == pytest.approx(2.0)
     poses = src.gt_poses
     np.testing.assert_array_equal(poses[:61, :3, 3], np.broadcast_to(poses[0, :3, 3], (61, 3)))

@@ -318,7 +318,7 @@ def _pan(n: int, centre: np.ndarray, amplitude: float, swings: float, tilt: floa
     return _poses_looking_at(np.tile(centre, (n, 1)), centre + dirs)
 
 
-def pure_rotation(n: int = 150, amplitude: float = 60.0, swings: float = 2.0, tilt: float = 8.0) -> np.ndarray:
+def pure_rotation(n: int = 150, amplitude: float = 60.0, swings: float = 1.0, tilt: float = 8.0) -> np.ndarray:
     """A phone panned round the room from one place (zero baseline in every frame): standing at
     (0, -1, 1.45), the heading swings +-``amplitude`` degrees about facing the front wall, ``swings`` full
     periods over the n frames, while the camera tilts by up to ``tilt`` degrees about 5 degrees down (twice
@@ -334,7 +334,7 @@ TURN_FRAMES = 60
 """Frames of turning at the start of :func:`turn_then_walk`: 2 s at the default 30 fps."""
 
 
-def turn_then_walk(n: int = 150, turn_frames: int | None = None, amplitude: float = 45.0, speed: float = 0.015
+def turn_then_walk(n: int = 150, turn_frames: int | None = None, amplitude: float = 25.0, speed: float = 0.015
                    ) -> np.ndarray:
     """A clip that starts by turning: the first ``turn_frames`` frames (default :data:`TURN_FRAMES`, 2 s at
     the default 30 fps; half the frames when there are fewer than twice that) turn in

@@ -17,7 +17,7 @@ in place: degenerate motion after initialization), ``loop`` (returns exactly to 
 (smooth random motion), the hard motions of issue 17 ``fast-forward`` (``forward`` at 0.25 m per frame, with a
 sideways drift), ``fast-yaw`` (quick turns at a fixed yaw rate in degrees per frame while walking slowly)
 and ``jerky`` (hand-held with sudden jumps: several frames of motion in one), the rotation phases of issue 42
-``pure-rotation`` (a pan round the room from one place: +-60 degrees, two swings, some tilt) and
+``pure-rotation`` (a pan round the room from one place: +-60 degrees, some tilt) and
 ``turn-then-walk`` (2 s of turning in place, then a sideways walk), and ``default`` (the motion of
 the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence before JPEG
 compression). Motions through their own scene (:data:`SCENE_MOTIONS`): ``street-drive`` (driving down a
