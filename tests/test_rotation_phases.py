@@ -36,7 +36,8 @@ def test_turn_then_walk_turns_in_place_for_two_seconds_then_walks():
     poses = src.gt_poses
     np.testing.assert_array_equal(poses[:61, :3, 3], np.broadcast_to(poses[0, :3, 3], (61, 3)))
     steps = np.linalg.norm(np.diff(poses[60:, :3, 3], axis=0), axis=1)
-    np.testing.assert_allclose(steps, 0.015, rtol=1e-9)
+    np.testing.assert_allclose(steps, 0.015, rtol=0.25)
+    assert np.ptp(poses[60:, 1, 3]) > 0.1  # the walk bends: not a line
     yaw = _yaw_deg(poses)
     assert yaw[:61].max() == pytest.approx(45, abs=1) and yaw[:61].min() == pytest.approx(-45, abs=1)
     np.testing.assert_allclose(yaw[60:], 0.0, atol=1e-9)  # facing the front wall while walking
@@ -48,7 +49,7 @@ def test_turn_then_walk_turns_in_place_for_two_seconds_then_walks():
 def test_short_turn_then_walk_turns_for_half_the_frames():
     poses = turn_then_walk(40)
     np.testing.assert_array_equal(poses[:21, :3, 3], np.broadcast_to(poses[0, :3, 3], (21, 3)))
-    assert np.linalg.norm(poses[21, :3, 3] - poses[20, :3, 3]) == pytest.approx(0.015)
+    assert np.linalg.norm(poses[21, :3, 3] - poses[20, :3, 3]) == pytest.approx(0.015, rel=0.25)
 
 
 @pytest.mark.parametrize("spec, what", [

@@ -341,7 +341,8 @@ def turn_then_walk(n: int = 150, turn_frames: int | None = None, amplitude: floa
     place at (-0.6, -1, 1.45) (zero baseline: the heading swings +-``amplitude`` degrees, one period, back to
     facing the front wall, with a few degrees of tilt), then the camera walks sideways along +x at ``speed``
     metres per frame facing the front wall (back and forth over at most 1.4 m). Frames 0 to ``turn_frames``
-    share one camera centre."""
+    share one camera centre. The walk bends forward by up to 0.2 m in the middle (y = -1 + 0.2 sin(pi x'/1.4), x'
+    the distance walked), so the path is not a line."""
     n, speed = _check_frames(n), _check_positive("speed", speed)
     amplitude = _check_range("amplitude", amplitude, 0, 60, "degrees", open_low=True)
     if turn_frames is None:
@@ -352,7 +353,7 @@ def turn_then_walk(n: int = 150, turn_frames: int | None = None, amplitude: floa
     centre = np.array([-0.6, -1.0, 1.45])
     turning = _pan(t + 1, centre, amplitude, 1.0, 3.0)
     s = _travel(n - t, speed, 1.4)
-    centers = np.stack([centre[0] + s, np.full(n - t, centre[1]), np.full(n - t, centre[2])], axis=1)
+    centers = np.stack([centre[0] + s, centre[1] + 0.2 * np.sin(np.pi * s / 1.4), np.full(n - t, centre[2])], axis=1)
     walking = _pan(n - t, centre, 0.0, 1.0, 0.0)  # facing the front wall, 5 degrees down
     walking[:, :3, 3] = centers
     return np.concatenate([turning[:-1], walking])

@@ -34,6 +34,9 @@ ROTATION, GENERAL = "rotation", "general"
 
 @dataclass(frozen=True)
 class MotionModelSelectionConfig:
+    enabled: bool = True
+    """Choose a motion model per frame, and pose frames that only turn by their rotation (issue 42); False:
+    as before (no choice made, a pure rotation never posed)."""
     sigma_px: float = 1.0
     """Standard deviation of a keypoint's position, pixels (GRIC's noise model)."""
     min_matches: int = 20
