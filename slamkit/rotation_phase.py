@@ -33,6 +33,9 @@ from .state import ROTATION_ONLY, FrameRecord, FrameStatus, SlamState
 MIN_KEYFRAME_INLIERS = 100
 """A rotation keyframe is replaced by the previous frame when fewer of the frame's matches to it are inliers."""
 
+MAX_REFERENCES = 5
+"""Buffered frames of its chain a frame's orientation is measured against (the reference and older ones)."""
+
 
 @dataclass(frozen=True, eq=False)
 class RotationStep:
@@ -104,9 +107,28 @@ def track_rotation(state: SlamState, initializer: Initializer, selector: MotionM
     r = state.records[ref.index]
     if r.orientation is None:  # a new chain starts at the reference
         r.orientation, r.rotation_chain, r.rotation_ref = np.eye(3), r.index, r.index
-    record.orientation = choice.rotation @ r.orientation
+    record.orientation = _averaged(state, initializer, selector, ff, r, choice, K)
     record.rotation_chain, record.rotation_ref = r.rotation_chain, ref.index
     return choice
+
+
+def _averaged(state: SlamState, initializer: Initializer, selector: MotionModelSelector, ff: FrameFeatures,
+              ref: FrameRecord, choice: MotionModelChoice, K: np.ndarray) -> np.ndarray:
+    """The frame's orientation in its chain: the rotation average (inlier-weighted) of what the reference and up
+    to :data:`MAX_REFERENCES` - 1 older frames of the chain still buffered say (the oldest first: their
+    longer arcs drift less than a chain of short steps)."""
+    sums = choice.inliers.sum() * (choice.rotation @ ref.orientation)
+    others = [f for f in initializer.frames if f.index < ff.index and f.index != ref.index
+              and state.records[f.index].rotation_chain == ref.rotation_chain
+              and state.records[f.index].orientation is not None]
+    for f in others[: MAX_REFERENCES - 1]:
+        m = initializer.window_matches(f, ff)
+        if len(m) < MIN_KEYFRAME_INLIERS:
+            continue
+        R, _, inliers = selector.estimate_rotation(f.keypoints[m[:, 0]], ff.keypoints[m[:, 1]], K)
+        if inliers.sum() >= MIN_KEYFRAME_INLIERS:
+            sums = sums + inliers.sum() * (R @ state.records[f.index].orientation)
+    return rotation_from_bearings(np.eye(3), sums.T)  # the rotation nearest to the weighted sum
 
 
 def _chains(state: SlamState) -> dict[int, list[FrameRecord]]:
