@@ -123,7 +123,7 @@ class Slam:
         matcher = None if c.matcher == "nn" else create_matcher(c.matcher, **c.matcher_options())  # "nn": per stage
         self.tracker = Tracker(replace(c.tracker, random_seed=c.seed))
         self.motion_model = MotionModel()
-        self.rotation_phase = RotationPhase(replace(c.motion_model, random_seed=c.seed))
+        self.rotation_phase = RotationPhase(replace(c.motion_model, random_seed=c.seed), matcher)
         self.relocalizer = Relocalizer(RelocalizerConfig(c.relocalization_candidates, c.tracker.local_keyframes,
                                                          c.tracker.point_descriptor))
         self.selector = KeyframeSelector(c.keyframes)
@@ -296,8 +296,7 @@ class Slam:
         st = self.state
         t = time.perf_counter()
         if len(ff) < 8:
-            record.status = SKIPPED
-            timings["initialize"] = time.perf_counter() - t
+            record.status, timings["initialize"] = SKIPPED, time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
         res = self.initializer.step(ff, last=self.done)  # the cursor has moved past this frame
         timings["initialize"] = time.perf_counter() - t
@@ -322,8 +321,7 @@ class Slam:
         seg = st.segment
         t = time.perf_counter()
         if len(ff) < self.config.tracker.min_inliers:
-            record.status = SKIPPED
-            timings["track"] = time.perf_counter() - t
+            record.status, timings["track"] = SKIPPED, time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
         prediction = self.motion_model.step(st.records, record.index, seg.id, st.pose_of)
         tr = self.tracker.step(ff, st.local_map, seg.slam_map.pycolmap_camera, prediction.cam_from_world,
@@ -337,7 +335,7 @@ class Slam:
                 tr, relocalized = found, True
         timings["track"] = time.perf_counter() - t - timings.get("relocalize", 0.0)
         if not tr.tracked:
-            return self._lost(record, tr, timings)
+            return self._lost(record, tr, timings, ff)
         st.consecutive_lost = 0
         st.last_ids = tr.point3D_ids
         if len(seg.recent_points.ids):  # local mapping's recent-point test counts every tracked frame
@@ -365,10 +363,14 @@ class Slam:
                             tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
                             merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping)
 
-    def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict) -> StepResult:
-        """Neither the local map nor relocalization found the frame; after ``max_lost_frames`` such frames
-        (or with an empty local map) the segment ends and the next frames initialize a new one."""
+    def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict, ff: FrameFeatures) -> StepResult:
+        """Neither the local map nor relocalization found the frame; unless it only turned (posed by rotation:
+        ``RotationPhase.track_lost``), after ``max_lost_frames`` such frames (or with an empty local map) the
+        segment ends and the next frames initialize a new one."""
         st = self.state
+        turn = self.rotation_phase.track_lost(st, ff, record, self.camera.K)
+        if turn.oriented:
+            return self._result(record, TRACKED, turn.note + tr.reason, timings, **turn.fields)
         record.status = LOST
         st.last_ids = None
         st.consecutive_lost += 1

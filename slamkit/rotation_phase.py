@@ -23,7 +23,7 @@ import pycolmap
 
 from dataclasses import dataclass
 
-from .features import FrameFeatures
+from .features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from .map import SlamMap
 from .stages.initializer import Initializer
 from .stages.motion_model_selection import (GENERAL, MotionModelChoice, MotionModelSelectionConfig,
@@ -44,11 +44,8 @@ class RotationStep:
 
     choice: MotionModelChoice | None = None
     oriented: bool = False
-
-    @property
-    def note(self) -> str:
-        """The step message's prefix: "" unless the frame got an orientation."""
-        return f"{ROTATION_ONLY} yet, orientation tracked; " if self.oriented else ""
+    note: str = ""
+    """The step message's prefix: "" unless the frame got an orientation."""
 
     @property
     def fields(self) -> dict:
@@ -61,16 +58,46 @@ class RotationPhase:
     """Frames that only turn before a map exists: :meth:`step` per buffered frame, :meth:`anchor` once the
     initializer made a map, :meth:`finish` when none was ever made (the module's docstring explains)."""
 
-    def __init__(self, config: MotionModelSelectionConfig = MotionModelSelectionConfig()):
+    def __init__(self, config: MotionModelSelectionConfig = MotionModelSelectionConfig(),
+                 matcher: PairMatcher | None = None):
         self.config = config
         self.selector = MotionModelSelector(config)
+        self.matcher = matcher if matcher is not None else NearestNeighborMatcher(MatchingConfig())
+        """Matches a lost frame with the last keyframe (:meth:`track_lost`): the run's matcher, else NN."""
 
     def step(self, state: SlamState, initializer: Initializer, ff: FrameFeatures, record: FrameRecord,
              K: np.ndarray) -> RotationStep:
         if not self.config.enabled:
             return RotationStep()
         choice = track_rotation(state, initializer, self.selector, ff, record, K)
-        return RotationStep(choice, record.orientation is not None)
+        oriented = record.orientation is not None
+        return RotationStep(choice, oriented, f"{ROTATION_ONLY} yet, orientation tracked; " if oriented else "")
+
+    def track_lost(self, state: SlamState, ff: FrameFeatures, record: FrameRecord, K: np.ndarray) -> RotationStep:
+        """A frame of a segment that neither the local map nor relocalization posed (too few map points in
+        view, as when turning fast into the unmapped): when its matches to the last keyframe are a rotation
+        only, it is posed in the same map by that rotation with the position held (the previous frame's
+        centre, else the keyframe's): status tracked, ``motion_model`` "rotation", no keyframe."""
+        seg = state.segment
+        if not self.config.enabled or seg is None or state.last_keyframe not in seg.slam_map.keyframes:
+            return RotationStep()
+        kf = seg.slam_map.keyframes[state.last_keyframe]
+        m = self.matcher.match(kf.features, ff.features)
+        choice = self.selector.step(kf.keypoints[m[:, 0]], ff.keypoints[m[:, 1]], K)
+        record.motion_model = choice.model
+        if not choice.is_rotation or choice.inliers.sum() < MIN_KEYFRAME_INLIERS // 2:
+            return RotationStep(choice)
+        T = np.eye(4)
+        T[:3] = seg.slam_map.cam_from_world(state.last_keyframe).matrix()
+        prev = state.records[record.index - 1] if record.index > 0 else None
+        held = state.pose_of(prev) if prev is not None and prev.segment == seg.id else None
+        held = T if held is None else held
+        centre = -held[:3, :3].T @ held[:3, 3]
+        T[:3, :3] = choice.rotation @ T[:3, :3]
+        T[:3, 3] = -T[:3, :3] @ centre
+        state.set_pose(record, state.last_keyframe, T, FrameStatus.TRACKED, absolute=True)
+        state.consecutive_lost, state.last_ids = 0, None
+        return RotationStep(choice, True, f"rotation only against keyframe {state.last_keyframe} (position held); ")
 
     def anchor(self, state: SlamState) -> list[int]:
         """:func:`anchor_rotation_chains` in the current segment (none when tracking lost it again)."""
