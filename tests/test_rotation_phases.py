@@ -107,3 +107,25 @@ def test_turning_then_walking_ends_in_one_map_with_every_frame_posed():
     err = _orientation_errors_deg(slam, src)
     assert np.sqrt((err[:60] ** 2).mean()) < 0.5
     assert ate(src.ground_truth(), slam.trajectory()).rmse < 0.03  # metres, a 1.4 m walk
+
+
+def test_a_frame_turning_out_of_the_map_is_posed_by_its_rotation_to_the_last_keyframe():
+    """Issue 42, after initialization: frames that turn away from the mapped part of the room (PnP fails) but
+    still overlap the last keyframe are posed by the rotation between them, the position held, in the same
+    map, instead of being lost."""
+    src = open_source("synthetic:fast-yaw?frames=60&yaw_rate=4&turn=150&hold=0&noise=1&seed=0")
+    slam = Slam(src, SlamConfig().with_overrides(init_frames=10))
+    results = slam.run()
+    turned = [r for r in results if r.status == "tracked" and r.motion_model == "rotation"]
+    assert turned and all("rotation only against keyframe" in r.message for r in turned)
+    assert len(slam.summary()["segments"]) == 1
+    for r in turned:
+        rec = slam.records[r.frame_index]
+        kf_frame = slam.slam_map.keyframes[rec.ref_image_id].frame_index
+        est = slam.pose_of(rec)[:3, :3] @ slam.pose_of(kf_frame)[:3, :3].T  # cam_from_kf, estimated
+        gt = (np.linalg.inv(src.gt_poses[r.frame_index]) @ src.gt_poses[kf_frame])[:3, :3]
+        cos = (np.trace(est @ gt.T) - 1) / 2
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 0.5
+        prev = slam.pose_of(r.frame_index - 1)
+        centre = lambda T: -T[:3, :3].T @ T[:3, 3]  # noqa: E731
+        np.testing.assert_allclose(centre(slam.pose_of(rec)), centre(prev), atol=1e-6)  # position held
