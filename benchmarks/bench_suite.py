@@ -78,7 +78,7 @@ class Case:
 
     name: str
     kind: str
-    """real | tiny | fast-forward | fast-yaw | jerky"""
+    """real | tiny | fast-forward | fast-yaw | jerky | rotation"""
     spec: str
     skip: int = 1
     kw: dict = field(default_factory=dict)
@@ -129,6 +129,10 @@ CASES = [
     Case("syn-fast-yaw-20", "fast-yaw",
          "synthetic:fast-yaw?frames=100&yaw_rate=20&turn=150&hold=3&speed=0.005" + _SYN,
          what="swings of +-75 deg at 20 deg/frame (~175 px), 3 frames still between, walking 5 mm/frame"),
+    Case("syn-turn-then-walk", "rotation", "synthetic:turn-then-walk?frames=150&amplitude=45" + _SYN,
+         what="2 s turning in place (+-45 deg, ~4.7 deg/frame), then walking 1.5 cm/frame (issue 42)"),
+    Case("syn-pure-rotation", "rotation", "synthetic:pure-rotation?frames=150" + _SYN,
+         what="a pan from one place, +-60 deg with tilt: no 3-D structure (issue 42; ATE undefined)"),
     Case("syn-jerky-10", "jerky", "synthetic:jerky?frames=150&jump=10" + _SYN,
          what="hand-held 1.5 cm/frame, 3 jerks of 10 frames of motion in one (~15 cm)"),
     Case("syn-jerky-30", "jerky", "synthetic:jerky?frames=150&jump=30" + _SYN, quick=True,

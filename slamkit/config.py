@@ -19,6 +19,7 @@ from .stages.ba import BundleAdjustmentConfig
 from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
 from .stages.local_mapper import LocalMappingConfig
+from .stages.motion_model_selection import MotionModelSelectionConfig
 from .stages.loop_closer import LoopClosingConfig
 from .stages.mapper import MapperConfig
 from .stages.self_calibration import SelfCalibrationConfig
@@ -78,6 +79,8 @@ class SlamConfig:
     local_mapping: LocalMappingConfig = field(default_factory=LocalMappingConfig)
     """The local-mapping stage used when ``mapper.method`` is "local"."""
     ba: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
+    motion_model: MotionModelSelectionConfig = field(default_factory=MotionModelSelectionConfig)
+    """Rotation-only or general motion per frame (GRIC, issue 42): frames that only turn are posed by rotation."""
     loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
     """Loop detection and correction (``--set loop_closing.enabled=false`` turns it off; the ``seed`` preset
     has it off, as the source paper)."""
@@ -107,7 +110,7 @@ class SlamConfig:
         if self.camera and self.camera != "auto" and not is_camera_path(self.camera):
             parse_camera_values(self.camera, "camera")
         for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.local_mapping, self.ba,
-                      self.loop_closing, self.self_calibration):
+                      self.loop_closing, self.self_calibration, self.motion_model):
             stage.validate()
         if self.mapper.min_keyframe_points > self.initializer.min_points * 10:
             raise ConfigError("mapper.min_keyframe_points is larger than any initial map could provide "

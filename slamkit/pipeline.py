@@ -27,6 +27,7 @@ from .local_map import LocalMap
 from .map import SlamMap
 from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
+from .rotation_phase import RotationPhase
 from .run_camera import (camera_report, choose_camera, clamped, describe_camera, final_global_ba, first_estimate,
                          refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
@@ -122,6 +123,7 @@ class Slam:
         matcher = None if c.matcher == "nn" else create_matcher(c.matcher, **c.matcher_options())  # "nn": per stage
         self.tracker = Tracker(replace(c.tracker, random_seed=c.seed))
         self.motion_model = MotionModel()
+        self.rotation_phase = RotationPhase(replace(c.motion_model, random_seed=c.seed), matcher)
         self.relocalizer = Relocalizer(RelocalizerConfig(c.relocalization_candidates, c.tracker.local_keyframes,
                                                          c.tracker.point_descriptor))
         self.selector = KeyframeSelector(c.keyframes)
@@ -251,12 +253,8 @@ class Slam:
     def _skip_unreadable(self, error: Exception, timings: dict, t_start: float) -> StepResult:
         """A frame the source cannot deliver: status "skipped", the source's message (file, frame) in the
         result and in ``summary()["unreadable_frames"]``; the map and the tracking state are untouched."""
-        st = self.state
-        i = int(self.indices[st.cursor])
-        record = FrameRecord(st.cursor, int(self.source.frame_ids[i]), float(self.source.timestamps[i]),
-                             SKIPPED, unreadable=str(error))
-        st.cursor += 1
-        st.records.append(record)
+        i = int(self.indices[self.state.cursor])
+        record = self.state.skip_unreadable(int(self.source.frame_ids[i]), float(self.source.timestamps[i]), error)
         timings["read"] = time.perf_counter() - t_start
         return self._result(record, SKIPPED, f"bad frame skipped: {error}", timings)
 
@@ -298,20 +296,19 @@ class Slam:
         st = self.state
         t = time.perf_counter()
         if len(ff) < 8:
-            record.status = SKIPPED
-            timings["initialize"] = time.perf_counter() - t
+            record.status, timings["initialize"] = SKIPPED, time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
         res = self.initializer.step(ff, last=self.done)  # the cursor has moved past this frame
         timings["initialize"] = time.perf_counter() - t
-        if not res.initialized:
-            record.status = INITIALIZING
-            if res.status == "failed":
-                st.init_message = res.reason
-            return self._result(record, INITIALIZING, res.reason, timings)
+        if not res.initialized:  # meanwhile a frame that only turns gets its orientation (rotation_phase)
+            record.status, st.init_message = INITIALIZING, res.reason if res.status == "failed" else st.init_message
+            turn = self.rotation_phase.step(st, self.initializer, ff, record, self.camera.K)
+            return self._result(record, INITIALIZING, turn.note + res.reason, timings, **turn.fields)
         # a new segment with the two initial keyframes; the rest of the window is tracked below
         st.start_segment(res.slam_map, res.frames, [f for f in res.frames if f.index < res.second and f.index != res.first])
         st.local_map = self._local_map(res.slam_map, st.last_keyframe)
         posed, message = track_window(st, res, self.tracker, self._track, timings)
+        posed += self.rotation_phase.anchor(st)  # the frames that only turned before, posed in this map
         record.status = record.status if record.rel_pose is not None else LOST
         return self._result(record, INITIALIZED, res.reason + message, timings, posed_frames=tuple(sorted(posed)),
                             is_keyframe=record.keyframe_image_id > 0)
@@ -324,8 +321,7 @@ class Slam:
         seg = st.segment
         t = time.perf_counter()
         if len(ff) < self.config.tracker.min_inliers:
-            record.status = SKIPPED
-            timings["track"] = time.perf_counter() - t
+            record.status, timings["track"] = SKIPPED, time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
         prediction = self.motion_model.step(st.records, record.index, seg.id, st.pose_of)
         tr = self.tracker.step(ff, st.local_map, seg.slam_map.pycolmap_camera, prediction.cam_from_world,
@@ -339,7 +335,7 @@ class Slam:
                 tr, relocalized = found, True
         timings["track"] = time.perf_counter() - t - timings.get("relocalize", 0.0)
         if not tr.tracked:
-            return self._lost(record, tr, timings)
+            return self._lost(record, tr, timings, ff)
         st.consecutive_lost = 0
         st.last_ids = tr.point3D_ids
         if len(seg.recent_points.ids):  # local mapping's recent-point test counts every tracked frame
@@ -367,10 +363,14 @@ class Slam:
                             tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
                             merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping)
 
-    def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict) -> StepResult:
-        """Neither the local map nor relocalization found the frame; after ``max_lost_frames`` such frames
-        (or with an empty local map) the segment ends and the next frames initialize a new one."""
+    def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict, ff: FrameFeatures) -> StepResult:
+        """Neither the local map nor relocalization found the frame; unless it only turned (posed by rotation:
+        ``RotationPhase.track_lost``), after ``max_lost_frames`` such frames (or with an empty local map) the
+        segment ends and the next frames initialize a new one."""
         st = self.state
+        turn = self.rotation_phase.track_lost(st, ff, record, self.camera.K)
+        if turn.oriented:
+            return self._result(record, TRACKED, turn.note + tr.reason, timings, **turn.fields)
         record.status = LOST
         st.last_ids = None
         st.consecutive_lost += 1
@@ -507,6 +507,7 @@ class Slam:
         except OSError:  # no room for the temporary copy: the finished state is saved, and not extended later
             self.unfinished_session = None
         st.finished = True
+        self.rotation_phase.finish(st, self.initializer, self.camera)  # no map at all: a pure rotation
         t = time.perf_counter()
         main = st.main_segment
         for seg in st.segments:

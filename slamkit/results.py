@@ -119,6 +119,11 @@ class StepResult:
     map_merge: "MergeResult | None" = None
     """The current map segment merged into the earlier one whose place it recognised (``merge_candidate``):
     keyframes and points moved, points fused, the Sim(3)'s scale; or None."""
+    motion_model: str = ""
+    """The motion model chosen for the frame (GRIC, ``stages.motion_model_selection``): "rotation" (it only
+    turned: position held, orientation tracked), "general" (6-DoF), or "" (none chosen)."""
+    motion_model_reason: str = ""
+    """Why: the two models' GRIC scores, inliers and transfer error."""
     mapping: MappingResult | None = None
     """What the mapper did with the keyframe (``MappingResult``, or ``LocalMappingResult`` with the points local
     mapping created, culled and fused), or None when the frame did not become one."""

@@ -33,7 +33,7 @@ from .io.run import save_run
 from .io.run_dir import check_out_dir, out_dir_lock, remove_stale_temporaries, save_id
 from .pipeline import Slam, StepResult
 from .session import find_session
-from .state import describe_stages
+from .state import ROTATION_ONLY, describe_stages
 
 __all__ = ["EXIT_CODES", "EXIT_FAILED", "EXIT_NOTHING_POSED", "EXIT_OK", "EXIT_POOR_MATCH", "EXIT_USAGE",
            "RunOutcome", "run_to_folder", "summary_line"]
@@ -222,6 +222,8 @@ def summary_line(s: dict) -> str:
         first = (s.get("unreadable_frames") or [{}])[0]
         line += f"; {skipped} frame{'s' if skipped != 1 else ''} skipped ({unreadable} unreadable"
         line += f", e.g. frame {first['frame']}: {first['error']})" if first else ")"
+    if s.get("structure") == ROTATION_ONLY:
+        line += f"; {ROTATION_ONLY} ({s.get('frames_rotation_only', 0)} frames turned only)"
     if s.get("not_initialized_reason") and s["frames"]:
         line += f"; no map: {s['not_initialized_reason']}"
     return line

@@ -24,6 +24,10 @@ if TYPE_CHECKING:  # pragma: no cover
     from .map import SlamMap
 
 
+ROTATION_ONLY = "rotation only: no 3-D structure"
+"""What the summary, the progress line and the step results say of a map made by rotation alone."""
+
+
 class FrameStatus(StrEnum):
     """What became of a frame. A ``str``: saved JSON and CSV hold the plain strings, and
     ``status == "tracked"`` holds."""
@@ -56,6 +60,15 @@ class FrameRecord:
     unreadable: str = ""
     """Why the source could not deliver the frame (corrupt file, undecodable video frame, another image
     size), when it was skipped for that."""
+    motion_model: str = ""
+    """The motion model chosen for the frame (``stages.motion_model_selection``): "rotation", "general" or ""
+    (not chosen)."""
+    orientation: np.ndarray | None = None
+    """(3, 3) rotation from the first frame of its rotation chain (``slamkit.rotation_phase``), or None."""
+    rotation_chain: int = -1
+    """Index of the first frame of the frame's rotation chain (-1: none)."""
+    rotation_ref: int = -1
+    """Index of the rotation keyframe its orientation was measured against (-1: none)."""
 
     def __post_init__(self) -> None:
         self.status = FrameStatus(self.status)
@@ -123,6 +136,9 @@ class Segment:
     merged_into: int = -1
     """Id of the segment this one was merged into (``slamkit.merging.merge_segments``; it is then empty and
     kept only so segment ids stay indices), -1 while it is a map of its own."""
+    rotation_only: bool = False
+    """The frames only turned: one keyframe, no points, every frame posed by its orientation
+    (``slamkit.rotation_phase.rotation_only_segment``)."""
 
 
 def _matrix(rigid) -> np.ndarray:
@@ -199,6 +215,14 @@ class SlamState:
         rec.status = status
         if not seg.frames or seg.frames[-1] != rec.index:
             seg.frames.append(rec.index)
+
+    def skip_unreadable(self, frame_id: int, timestamp: float, error: Exception) -> FrameRecord:
+        """The frame at the cursor could not be read: its record ("skipped", ``unreadable`` = the source's
+        message), the cursor past it; the map and the tracking state are untouched."""
+        record = FrameRecord(self.cursor, frame_id, timestamp, FrameStatus.SKIPPED, unreadable=str(error))
+        self.cursor += 1
+        self.records.append(record)
+        return record
 
     def mark_error(self, rec: FrameRecord, message: str, posed: bool = False) -> None:
         """A stage raised on frame ``rec``: status "error" and no pose (a keyframe keeps its pose: it is in
@@ -366,6 +390,8 @@ class SlamState:
                           "keyframes": s.slam_map.num_keyframes, "points3D": s.slam_map.num_points}
                          for s in self.live_segments],
             "main_segment": main.id if main else None,
+            "structure": ROTATION_ONLY if main is not None and main.rotation_only else ("3-D" if main else "none"),
+            "frames_rotation_only": int(sum(r.motion_model == "rotation" for r in self.records)),
             "merges": int(sum(s.merged_into >= 0 for s in self.segments)),
             "map_merges": [dict(m) for m in self.map_merges],
             "relocalizations": int(sum(s.relocalizations for s in self.segments)),

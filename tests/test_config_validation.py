@@ -31,7 +31,8 @@ PROBES: dict[str, object] = {
 
 ACCEPTED: dict[tuple[str, str], str] = {
     **{(seed, p): "a seed is any non-negative integer (slamkit.errors.native_seed maps it for pycolmap)"
-       for seed in ("seed", "initializer.random_seed", "tracker.random_seed") for p in ("1e20", "10**20", "2**31")},
+       for seed in ("seed", "initializer.random_seed", "tracker.random_seed", "motion_model.random_seed")
+       for p in ("1e20", "10**20", "2**31")},
     **{(f"loop_closing.{v}.random_seed", p): "-1: random (documented); any non-negative integer is a seed"
        for v in ("verification", "merge_verification") for p in ("-1", "1e20", "10**20", "2**31")},
     ("ba.num_threads", "-1"): "-1: all cores (documented)",

@@ -139,12 +139,19 @@ def test_prefetching_the_next_frame_changes_nothing():
     np.testing.assert_array_equal(slam.trajectory().poses, c.poses)
 
 
-def test_pure_rotation_does_not_initialize_and_says_why():
+def test_pure_rotation_makes_no_3d_map_says_why_and_poses_every_orientation():
+    """Issue 42: no initial pair (no parallax), but every frame is posed by its rotation alone."""
     slam = Slam(open_source("synthetic:rotation?frames=45"), SlamConfig().with_overrides(init_frames=15))
     results = slam.run()
     assert all(r.status in ("initializing",) for r in results)
     assert any("parallax" in r.message for r in results)
-    assert slam.summary()["frames_posed"] == 0
+    assert all(r.motion_model == "rotation" and "rotation only" in r.message for r in results[1:])
+    s = slam.summary()
+    assert s["frames_posed"] == 45 and s["points3D"] == 0 and s["structure"] == "rotation only: no 3-D structure"
+    off = Slam(open_source("synthetic:rotation?frames=45"),
+               SlamConfig().with_overrides(init_frames=15, **{"motion_model.enabled": False}))
+    off.run()
+    assert off.summary()["frames_posed"] == 0 and off.summary()["structure"] == "none"
 
 
 def test_rotation_in_place_after_a_translation_is_tracked_without_keyframes():

@@ -302,6 +302,63 @@ def jerk_source_indices(n: int, jumps: int, jump: int) -> np.ndarray:
     return np.cumsum(steps)
 
 
+# ----------------------------------------------------------------------------------------------------------
+# rotation phases (issue 42): a phone panned round a room, a clip that starts by turning
+
+
+def _pan(n: int, centre: np.ndarray, amplitude: float, swings: float, tilt: float, heading: float = 0.0,
+         pitch0: float = -5.0) -> np.ndarray:
+    """(n, 4, 4) poses at one centre: yaw ``heading + amplitude * sin(2 pi swings i / (n - 1))`` degrees
+    (positive to the left, about +z, 0 = facing the front wall, +y), pitch ``pitch0 + tilt * sin(4 pi swings
+    i / (n - 1))`` degrees."""
+    phase = 2 * np.pi * swings * np.arange(n) / max(n - 1, 1)
+    yaw = np.radians(heading + amplitude * np.sin(phase))
+    pitch = np.radians(pitch0 + tilt * np.sin(2 * phase))
+    dirs = np.stack([-np.sin(yaw) * np.cos(pitch), np.cos(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
+    return _poses_looking_at(np.tile(centre, (n, 1)), centre + dirs)
+
+
+def pure_rotation(n: int = 150, amplitude: float = 60.0, swings: float = 1.0, tilt: float = 8.0) -> np.ndarray:
+    """A phone panned round the room from one place (zero baseline in every frame): standing at
+    (0, -1, 1.45), the heading swings +-``amplitude`` degrees about facing the front wall, ``swings`` full
+    periods over the n frames, while the camera tilts by up to ``tilt`` degrees about 5 degrees down (twice
+    as fast). Every pair of frames is related by a rotation only: no 3-D structure can be triangulated."""
+    n = _check_frames(n)
+    amplitude = _check_range("amplitude", amplitude, 0, 75, "degrees", open_low=True)
+    swings = _check_range("swings", swings, 0, 20, open_low=True)
+    tilt = _check_range("tilt", tilt, 0, 20, "degrees")
+    return _pan(n, np.array([0.0, -1.0, 1.45]), amplitude, swings, tilt)
+
+
+TURN_FRAMES = 60
+"""Frames of turning at the start of :func:`turn_then_walk`: 2 s at the default 30 fps."""
+
+
+def turn_then_walk(n: int = 150, turn_frames: int | None = None, amplitude: float = 25.0, speed: float = 0.015
+                   ) -> np.ndarray:
+    """A clip that starts by turning: the first ``turn_frames`` frames (default :data:`TURN_FRAMES`, 2 s at
+    the default 30 fps; half the frames when there are fewer than twice that) turn in
+    place at (-0.6, -1, 1.45) (zero baseline: the heading swings +-``amplitude`` degrees, one period, back to
+    facing the front wall, with a few degrees of tilt), then the camera walks sideways along +x at ``speed``
+    metres per frame facing the front wall (back and forth over at most 1.4 m). Frames 0 to ``turn_frames``
+    share one camera centre. The walk bends forward by up to 0.2 m in the middle (y = -1 + 0.2 sin(pi x'/1.4), x'
+    the distance walked), so the path is not a line."""
+    n, speed = _check_frames(n), _check_positive("speed", speed)
+    amplitude = _check_range("amplitude", amplitude, 0, 60, "degrees", open_low=True)
+    if turn_frames is None:
+        turn_frames = TURN_FRAMES if n >= 2 * TURN_FRAMES else max(2, n // 2)
+    if not math.isfinite(turn_frames) or int(turn_frames) != turn_frames or not 2 <= turn_frames < n:
+        raise ConfigError(f"turn_frames must be an integer number of frames in [2, frames) (got {turn_frames})")
+    t = int(turn_frames)
+    centre = np.array([-0.6, -1.0, 1.45])
+    turning = _pan(t + 1, centre, amplitude, 1.0, 3.0)
+    s = _travel(n - t, speed, 1.4)
+    centers = np.stack([centre[0] + s, centre[1] + 0.2 * np.sin(np.pi * s / 1.4), np.full(n - t, centre[2])], axis=1)
+    walking = _pan(n - t, centre, 0.0, 1.0, 0.0)  # facing the front wall, 5 degrees down
+    walking[:, :3, 3] = centers
+    return np.concatenate([turning[:-1], walking])
+
+
 MOTIONS: dict[str, Callable[..., np.ndarray]] = {
     "sideways": sideways,
     "forward": forward,
@@ -314,6 +371,8 @@ MOTIONS: dict[str, Callable[..., np.ndarray]] = {
     "fast-forward": fast_forward,
     "fast-yaw": fast_yaw,
     "jerky": jerky,
+    "pure-rotation": pure_rotation,
+    "turn-then-walk": turn_then_walk,
 }
 """Motion name -> function ``(n, ...) -> (N, 4, 4)`` camera-to-world poses in the default room."""
 

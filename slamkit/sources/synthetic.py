@@ -16,7 +16,9 @@ Motions in the room (:data:`MOTIONS`, defined in :mod:`slamkit.sources.motions`)
 in place: degenerate motion after initialization), ``loop`` (returns exactly to its start), ``handheld``
 (smooth random motion), the hard motions of issue 17 ``fast-forward`` (``forward`` at 0.25 m per frame, with a
 sideways drift), ``fast-yaw`` (quick turns at a fixed yaw rate in degrees per frame while walking slowly)
-and ``jerky`` (hand-held with sudden jumps: several frames of motion in one), and ``default`` (the motion of
+and ``jerky`` (hand-held with sudden jumps: several frames of motion in one), the rotation phases of issue 42
+``pure-rotation`` (a pan round the room from one place: +-60 degrees, some tilt) and
+``turn-then-walk`` (2 s of turning in place, then a sideways walk), and ``default`` (the motion of
 the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence before JPEG
 compression). Motions through their own scene (:data:`SCENE_MOTIONS`): ``street-drive`` (driving down a
 street at ``speed`` metres per frame, default 1.0 as KITTI at frame skip 2; :mod:`slamkit.sources.street`)
@@ -37,7 +39,8 @@ city block, a 250 m loop: :mod:`slamkit.sources.block`). Parameters of every mot
                  ``k1=0.262&k2=-0.953&k3=1.163``
 
 plus the motion's own keyword parameters (``speed`` in metres per frame, ``radius``, ``amplitude``,
-``jitter``, ``weave``, ``sway``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``: see each motion
+``jitter``, ``weave``, ``sway``, ``yaw_rate``, ``turn``, ``hold``, ``jumps``, ``jump``, ``swings``, ``tilt``,
+``turn_frames``: see each motion
 function in :mod:`slamkit.sources.motions`, :mod:`~slamkit.sources.street` and
 :mod:`~slamkit.sources.corridor`). An unknown motion or parameter, or a bad value, raises ConfigError.
 For example ``synthetic:street-drive?frames=120&speed=1.5&seed=2`` or ``synthetic:corridor-walk?frames=300``.

@@ -203,6 +203,11 @@ class Initializer:
             self._matches[key] = np.stack([ia[m[:, 0]], ib[m[:, 1]]], axis=1) if len(m) else m
         return self._matches[key]
 
+    def window_matches(self, a: FrameFeatures, b: FrameFeatures) -> np.ndarray:
+        """(M, 2) window matches (keypoint indices of ``a``, of ``b``) of two buffered frames, ``a`` first in
+        time: computed once, then kept with the window."""
+        return self._match(a, b)
+
     def step(self, frame: FrameFeatures, last: bool = False) -> InitResult:
         """Buffer ``frame`` and try to initialize when the window is complete: ``init_frames`` frames, the
         motion window closed (``window_overlap``), or ``last`` (no frame follows: a sequence shorter than the

@@ -31,8 +31,9 @@ def describe_step(r: "StepResult") -> str:
     """One plain-text line for a step result, worded for the phase the pipeline is in."""
     head = f"frame {r.frame_index} [{r.status}]"
     ms = f"{sum(r.timings.values()) * 1e3:.0f} ms"
+    motion = f"; motion model: {r.motion_model_reason}" if r.motion_model else ""
     if r.status == "initializing":
-        return f"{head} buffered for the two-view initialization; {r.message or 'no map yet'} ({ms})".strip()
+        return f"{head} buffered for the two-view initialization; {r.message or 'no map yet'}{motion} ({ms})".strip()
     if r.status == "initialized":
         posed = f", {len(r.posed_frames)} frames posed" if r.posed_frames else ""
         return (f"{head} first map: {r.num_keyframes} keyframes, {r.num_points} points{posed}"
@@ -43,6 +44,8 @@ def describe_step(r: "StepResult") -> str:
     if not np.isnan(r.flow):
         parts.append(f"flow score {r.flow:.3f}")
     parts.append(f"{r.matches} tracked matches, {r.inliers} pose inliers")
+    if r.motion_model:
+        parts.append(f"motion model: {r.motion_model_reason}")
     if r.is_keyframe:
         parts.append(f"KEYFRAME ({r.keyframe_reason})" if r.keyframe_reason else "KEYFRAME")
     elif r.keyframe_reason:
