@@ -285,7 +285,6 @@ def check_sweep_args(out_dir: str | os.PathLike, workers: int | None, *, flag_ou
         raise ConfigError(f"{flag_workers} {workers}: must be 0 (runs in this process) or a number of local "
                           "processes from 1 to 1024 (default: all cores)")
     return check_output(out_dir, "sweep", sources, flag=flag_out)
-    return out
 
 
 def sweep(sources: Iterable[str] | str, grid: Grid | Sequence[str] | Mapping[str, Any], out_dir: str | os.PathLike,
