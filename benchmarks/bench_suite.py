@@ -6,8 +6,10 @@ Cases (:data:`CASES`): KITTI odometry 07 at frame skip 1, 2, 3; 7-Scenes redkitc
 uncalibrated input (issue 39): KITTI 07 as a plain image folder (no calibration: self-calibrated; its ground
 truth paired frame by frame from the KITTI layout) and the driving clip with ``camera="auto"``;
 the two tiny TUM sequences (the ground-truth-only TUM folders are listed as skipped: no images); and the
-synthetic hard motions of :mod:`slamkit.sources.motions`, each at two strengths. Every case runs once per
-seed (``--seeds N``: seeds 0 .. N-1 go to ``SlamConfig.seed`` and, for synthetic cases, to the spec's
+synthetic hard motions of :mod:`slamkit.sources.motions`, each at two strengths; and two loops (kind
+"loop", not in ``--quick``): twice round the city block (1,000 frames) and the room's loop motion twice
+(3,000 frames). Every case runs once per seed
+(``--seeds N``: seeds 0 .. N-1 go to ``SlamConfig.seed`` and, for synthetic cases, to the spec's
 ``seed``: image noise, and the path of random motions). Frame skipping is ``SlamConfig.frame_skip``, as
 the CLI's ``--frame-skip``.
 
@@ -18,7 +20,8 @@ Columns, per run (from ``Slam.summary()``, ``Slam.trajectory()`` and :func:`slam
   frames the ATE is computed on);
 * ATE (m): RMSE after Sim(3) alignment of the largest segment's trajectory to ground truth (= evo
   ``evo_ape -as``); keyframe ATE (m): the same over its keyframes only (what ORB-SLAM2's monocular examples
-  save: ``KeyFrameTrajectory.txt``); relocalizations: summed over segments;
+  save: ``KeyFrameTrajectory.txt``); relocalizations: summed over segments; keyframes; loop closures
+  (``summary()["loop_closures"]``);
 * fx (px), k1: the run's final camera (with self-calibration, the estimate: compare KITTI 07's 707.09 px);
 * fps: frames / wall seconds of the whole run (opening the source to the end of ``run()``, image reading
   and the final bundle adjustment included; not the saving); CPU s/frame: process CPU seconds (all
@@ -78,7 +81,7 @@ class Case:
 
     name: str
     kind: str
-    """real | tiny | fast-forward | fast-yaw | jerky | rotation"""
+    """real | tiny | fast-forward | fast-yaw | jerky | rotation | loop"""
     spec: str
     skip: int = 1
     kw: dict = field(default_factory=dict)
@@ -137,13 +140,17 @@ CASES = [
          what="hand-held 1.5 cm/frame, 3 jerks of 10 frames of motion in one (~15 cm)"),
     Case("syn-jerky-30", "jerky", "synthetic:jerky?frames=150&jump=30" + _SYN, quick=True,
          what="hand-held 1.5 cm/frame, 3 jerks of 30 frames of motion in one (~45 cm)"),
+    Case("syn-block-loop", "loop", "synthetic:block-loop?frames=1000&laps=2" + _SYN,
+         what="twice round the 250 m city block, 1,000 frames (0.5 m/frame): drift a loop closure must undo"),
+    Case("syn-room-two-lap", "loop", "synthetic:loop?frames=3000&laps=2&jitter=1" + _SYN,
+         what="the room's loop motion twice, 3,000 frames: the second lap revisits the first"),
 ]
 
 RUN_COLUMNS = ["row", "case", "skip", "seed", "status", "frames", "posed_pct", "segments", "largest_pct",
-               "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame", "wall_s", "keyframes", "focal_px",
-               "k1", "error"]
+               "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame", "wall_s", "keyframes",
+               "loop_closures", "focal_px", "k1", "error"]
 MEAN_KEYS = ["posed_pct", "segments", "largest_pct", "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame",
-             "wall_s", "keyframes", "focal_px", "k1"]
+             "wall_s", "keyframes", "loop_closures", "focal_px", "k1"]
 
 
 def select_cases(cases: list[Case], pattern: str | None, quick: bool) -> list[Case]:
@@ -208,8 +215,8 @@ def run_one(case: Case, seed: int, out_dir: Path | None = None) -> dict:
         row |= {"status": "ok", "frames": n, "posed_pct": 100.0 * s["frames_posed"] / n,
                 "segments": len(s["segments"]), "largest_pct": 100.0 * len(traj) / n,
                 "relocalizations": s["relocalizations"], "fps": n / wall, "cpu_s_per_frame": cpu / n,
-                "wall_s": wall, "keyframes": s["keyframes"], "ate_m": None, "ate_kf_m": None,
-                "focal_px": slam.camera.fx, "k1": slam.camera.dist[0]}
+                "wall_s": wall, "keyframes": s["keyframes"], "loop_closures": s["loop_closures"],
+                "ate_m": None, "ate_kf_m": None, "focal_px": slam.camera.fx, "k1": slam.camera.dist[0]}
         if gt is None:
             row["error"] = "no ground truth"
         elif len(traj) < 3:
@@ -287,7 +294,8 @@ def run_all(jobs: list[tuple[Case, int]], workers: int = 2, timeout_s: float = 6
 
 def _cost(case: Case) -> float:
     """Rough relative cost of a run, to start the long ones first."""
-    return {"kitti-07": 160 * 4, "7scenes": 600, "video-kitti984": 268 * 4}.get(
+    return {"kitti-07": 160 * 4, "7scenes": 600, "video-kitti984": 268 * 4, "syn-block-loop": 1000 * 4,
+            "syn-room-two-lap": 3000 * 2}.get(
         case.name.split("/")[0], 150) / case.skip
 
 
@@ -349,17 +357,18 @@ def _cell(row: dict, key: str, fmt: str, scale: float = 1.0) -> str:
 def markdown(rows: list[dict]) -> str:
     """The per-case table (means ± standard errors over seeds)."""
     head = ["case", "skip", "frames", "runs", "posed (%)", "segments", "largest (%)", "ATE (m)", "keyframe ATE (m)",
-            "relocalizations", "fps", "CPU s/frame", "fx (px)", "k1", "seeds", "notes"]
+            "relocalizations", "keyframes", "loop closures", "fps", "CPU s/frame", "fx (px)", "k1", "seeds", "notes"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if r["status"] == "skipped":
-            cells = [r["case"], str(r["skip"]), "-", "skipped"] + ["-"] * 11 + [r["error"]]
+            cells = [r["case"], str(r["skip"]), "-", "skipped"] + ["-"] * 13 + [r["error"]]
         else:
             cells = [r["case"], str(r["skip"]), str(r["frames"] or "-"), r["status"],
                      _cell(r, "posed_pct", ".1f"), _cell(r, "segments", ".2g"), _cell(r, "largest_pct", ".1f"),
                      _cell(r, "ate_m", ".3g"), _cell(r, "ate_kf_m", ".3g"), _cell(r, "relocalizations", ".2g"),
-                     _cell(r, "fps", ".1f"), _cell(r, "cpu_s_per_frame", ".3f"), _cell(r, "focal_px", ".1f"),
-                     _cell(r, "k1", ".3f"), r["seed"], r["error"][:200]]
+                     _cell(r, "keyframes", ".4g"), _cell(r, "loop_closures", ".2g"), _cell(r, "fps", ".1f"),
+                     _cell(r, "cpu_s_per_frame", ".3f"), _cell(r, "focal_px", ".1f"), _cell(r, "k1", ".3f"),
+                     r["seed"], r["error"][:200]]
         lines.append("| " + " | ".join(c.replace("|", "/") for c in cells) + " |")
     return "\n".join(lines)
 

@@ -22,7 +22,11 @@ import pycolmap
 
 from .errors import ConfigError, native_seed
 from .features import MatchingConfig, match_descriptors
-from .pose_graph import sim3_from_pycolmap
+from .pose_graph import sim3_from_pycolmap, sim3_inverse
+
+CHI2_2DOF = 5.991
+"""95 % quantile of the chi-square distribution with two degrees of freedom: a reprojection error (pixels,
+squared) over the keypoint's variance (ORB-SLAM's bound, also local mapping's)."""
 
 
 class LoopStatus(str, enum.Enum):
@@ -182,6 +186,91 @@ def verify_loop_candidate(query_points: np.ndarray, query_descriptors: np.ndarra
         raise ConfigError("points and descriptors must have one row per map point")
     pairs = match_map_points(query_descriptors, candidate_descriptors, binary, matching)
     return verify_loop(qp[pairs[:, 0]], cp[pairs[:, 1]], config), pairs
+
+
+def project(K: np.ndarray, cam_from_world: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pinhole projection: (N, 2) pixels and (N,) depths of (N, 3) world points, ``cam_from_world`` (4, 4) for
+    all or (N, 4, 4) one per point (rigid or similarity), ``K`` (3, 3)."""
+    T = np.asarray(cam_from_world, np.float64)
+    X = np.asarray(points, np.float64).reshape(-1, 3)
+    Xc = (X @ T[:3, :3].T + T[:3, 3]) if T.ndim == 2 else (np.einsum("nij,nj->ni", T[:, :3, :3], X) + T[:, :3, 3])
+    z = Xc[:, 2]
+    uv = Xc[:, :2] / np.where(z > 0, z, 1.0)[:, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    return uv, z
+
+
+def reprojection_inliers(tgt_from_src: np.ndarray, K: np.ndarray,
+                         src_points: np.ndarray, src_cam_from_world: np.ndarray, src_xy: np.ndarray,
+                         src_scales: np.ndarray, tgt_points: np.ndarray, tgt_cam_from_world: np.ndarray,
+                         tgt_xy: np.ndarray, tgt_scales: np.ndarray, chi2: float = CHI2_2DOF) -> np.ndarray:
+    """ORB-SLAM's test of a loop's Sim(3) by reprojection (``Sim3Solver::CheckInliers``, ``OptimizeSim3``):
+    (N,) bool, True where matched pair i reprojects through the similarity in *both* keyframes.
+
+    The candidate's point ``tgt_points[i]`` (candidate world) is mapped by ``tgt_from_src``^-1 into the query's
+    world and projected into the query keyframe (``src_cam_from_world`` (4, 4)), where the matched point was
+    observed at ``src_xy[i]`` (undistorted pixels); the query's point ``src_points[i]`` is mapped by
+    ``tgt_from_src`` and projected into the candidate-side keyframe observing ``tgt_points[i]`` at
+    ``tgt_xy[i]`` (``tgt_cam_from_world`` (4, 4) or (N, 4, 4)). A pair passes with positive depth in both and
+    both squared errors within ``chi2`` x scale^2 (``*_scales``: the keypoints' pyramid scales, pixels of noise).
+    A distance test in 3D cannot tell depth error from a wrong match: a far point is uncertain by metres along
+    its ray but by a pixel across it, and a wrong match that lands within the 3D threshold is off by many.
+    """
+    S = np.asarray(tgt_from_src, np.float64)
+    uv_q, z_q = project(K, np.asarray(src_cam_from_world, np.float64) @ sim3_inverse(S), tgt_points)
+    uv_c, z_c = project(K, tgt_cam_from_world, np.asarray(src_points, np.float64) @ S[:3, :3].T + S[:3, 3])
+    e_q = ((uv_q - np.asarray(src_xy, np.float64)) ** 2).sum(axis=1)
+    e_c = ((uv_c - np.asarray(tgt_xy, np.float64)) ** 2).sum(axis=1)
+    return (z_q > 0) & (z_c > 0) & (e_q <= chi2 * np.asarray(src_scales) ** 2) & \
+        (e_c <= chi2 * np.asarray(tgt_scales) ** 2)
+
+
+def refine_sim3(tgt_from_src: np.ndarray, K: np.ndarray, src_points: np.ndarray, src_cam_from_world: np.ndarray,
+                src_xy: np.ndarray, src_scales: np.ndarray, tgt_points: np.ndarray, tgt_cam_from_world: np.ndarray,
+                tgt_xy: np.ndarray, tgt_scales: np.ndarray, initial_inliers: np.ndarray | None = None,
+                chi2: float = CHI2_2DOF, rounds: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """ORB-SLAM's ``Optimizer::OptimizeSim3``: the similarity refined by the reprojection errors of the matched
+    points in both keyframes (each point fixed, errors over the keypoint's scale, Huber at sqrt(chi2)): first
+    over ``initial_inliers`` (e.g. the 3D-3D RANSAC's; default all pairs), then ``rounds - 1`` times over the
+    pairs within the chi-square bound. Arguments as :func:`reprojection_inliers`. Returns the refined (4, 4)
+    ``tgt_from_src`` and its (N,) bool inliers (the given Sim(3) and its inliers when fewer than 3 pairs are
+    left to refine on).
+
+    A 3D-3D similarity weighs every point alike, so the depth error of far points biases its scale and
+    rotation; reprojection weighs each point by what the keyframes measured."""
+    from scipy.optimize import least_squares
+    from scipy.spatial.transform import Rotation
+
+    S0 = np.asarray(tgt_from_src, np.float64)
+    args = (K, src_points, src_cam_from_world, src_xy, src_scales, tgt_points, tgt_cam_from_world, tgt_xy,
+            tgt_scales)
+    keep = np.ones(len(src_points), bool) if initial_inliers is None else np.asarray(initial_inliers, bool)
+    S = S0
+    sp, st = np.asarray(src_points, np.float64), np.asarray(tgt_points, np.float64)
+    Tq = np.asarray(src_cam_from_world, np.float64)
+    Tc = np.asarray(tgt_cam_from_world, np.float64)
+    Tc = np.broadcast_to(Tc, (len(st), 4, 4)) if Tc.ndim == 2 else Tc
+    for _ in range(rounds):
+        if keep.sum() < 3:
+            return S0, reprojection_inliers(S0, *args, chi2=chi2)
+        sel = np.flatnonzero(keep)
+
+        def delta(x: np.ndarray, base: np.ndarray = S) -> np.ndarray:
+            d = np.eye(4)
+            d[:3, :3] = np.exp(x[6]) * Rotation.from_rotvec(x[:3]).as_matrix()
+            d[:3, 3] = x[3:6]
+            return d @ base
+
+        def residuals(x: np.ndarray) -> np.ndarray:
+            Sx = delta(x)
+            uv_q, _ = project(K, Tq @ sim3_inverse(Sx), st[sel])
+            uv_c, _ = project(K, Tc[sel], sp[sel] @ Sx[:3, :3].T + Sx[:3, 3])
+            return np.concatenate([((uv_q - src_xy[sel]) / np.asarray(src_scales)[sel, None]).ravel(),
+                                   ((uv_c - tgt_xy[sel]) / np.asarray(tgt_scales)[sel, None]).ravel()])
+
+        fit = least_squares(residuals, np.zeros(7), loss="huber", f_scale=float(np.sqrt(chi2)), max_nfev=50)
+        S = delta(fit.x)
+        keep = reprojection_inliers(S, *args, chi2=chi2)
+    return S, keep
 
 
 # ------------------------------------------------------------------------------------------------------

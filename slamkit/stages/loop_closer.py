@@ -33,8 +33,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import ConfigError, check_fields
-from ..loop_verification import ConsistentGroup, LoopVerificationConfig, update_consistent_groups, verify_loop_candidate
-from ..map import rigid_from_matrix
+from ..loop_verification import (ConsistentGroup, LoopVerificationConfig, refine_sim3, update_consistent_groups,
+                                 verify_loop_candidate)
+from ..map import keypoint_scales, rigid_from_matrix
 from ..place_recognition import PlaceDatabase, default_vocabulary
 from ..pose_graph import (PoseGraphConfig, correct_points, loop_edge, optimize_pose_graph, relative_edges,
                           sim3_decompose)
@@ -101,6 +102,13 @@ class LoopClosingConfig:
     other segments, whose maps are unrelated."""
     min_inliers: int = 30
     """Sim(3) inliers a loop needs (on top of ``verification``'s own thresholds)."""
+    reprojection_check: bool = True
+    """A loop in the segment has its Sim(3) refined by reprojection in both keyframes (ORB-SLAM's OptimizeSim3,
+    :func:`~slamkit.loop_verification.refine_sim3`) and needs ``min_inliers`` matches that reproject through
+    it within the chi-square bound at the keypoint's scale (ORB-SLAM's inlier test); only those are fused and
+    the refined Sim(3) makes the loop edges. The 3D distance test alone accepts wrong matches among near points
+    and rejects right ones among far points, whose depth is uncertain by more than its threshold, and its
+    Sim(3) weighs both alike."""
     max_postings: int = 200_000
     """Place-database entries one query visits at most (bounded query time as the map grows)."""
     global_ba: bool = True
@@ -324,21 +332,28 @@ class LoopCloser:
         c = self.config
         cand_seg = self._segment(self._where[cand_key][0])
         cand_id = self._where[cand_key][1]
-        q_ids, q_desc, binary = _keyframe_points(seg.slam_map, [image_id])
+        q_ids, q_desc, binary, q_obs = _keyframe_points(seg.slam_map, [image_id])
         group = _around(cand_seg.slam_map, cand_id, c.candidate_neighbours)
-        c_ids, c_desc, _ = _keyframe_points(cand_seg.slam_map, group)
+        c_ids, c_desc, _, c_obs = _keyframe_points(cand_seg.slam_map, group)
         if len(q_ids) < c.min_inliers or len(c_ids) < c.min_inliers:
             return None
         if cand_seg is seg:  # points both keyframes already share are no evidence of a loop
             keep = ~np.isin(c_ids, q_ids)
-            c_ids, c_desc = c_ids[keep], c_desc[keep]
+            c_ids, c_desc, c_obs = c_ids[keep], c_desc[keep], c_obs[keep]
         check = c.verification if cand_seg is seg else c.merge_verification
-        verification, pairs = verify_loop_candidate(
-            seg.slam_map.points_xyz(q_ids), q_desc, cand_seg.slam_map.points_xyz(c_ids), c_desc, binary,
-            replace(check, min_inliers=max(check.min_inliers, c.min_inliers)))
+        q_xyz, c_xyz = seg.slam_map.points_xyz(q_ids), cand_seg.slam_map.points_xyz(c_ids)
+        verification, pairs = verify_loop_candidate(q_xyz, q_desc, c_xyz, c_desc, binary,
+                                                    replace(check, min_inliers=max(check.min_inliers, c.min_inliers)))
         if not verification.accepted:
             return None
-        inl = pairs[verification.inlier_mask]
+        inliers = verification.inlier_mask
+        if c.reprojection_check and cand_seg is seg:
+            sim, inliers = _refine_by_reprojection(seg.slam_map, q_xyz[pairs[:, 0]], q_obs[pairs[:, 0]],
+                                                   c_xyz[pairs[:, 1]], c_obs[pairs[:, 1]], verification)
+            if inliers.sum() < max(check.min_inliers, c.min_inliers):
+                return None
+            verification = replace(verification, tgt_from_src=sim, scale=float(sim3_decompose(sim)[0]))
+        inl = pairs[inliers]
         return _Verified(cand_seg, cand_id, verification, np.stack([q_ids[inl[:, 0]], c_ids[inl[:, 1]]], axis=1))
 
     def _drift_ratio(self, state: "SlamState", seg: "Segment", image_id: int, found: _Verified) -> float:
@@ -366,9 +381,12 @@ class LoopCloser:
                         if w >= c.covisibility_weight and j != i})
         edges += relative_edges(poses, covis)
         sim = found.verification.tgt_from_src
-        q_group = [image_id] + [i for i, _ in slam_map.covisible(image_id, c.loop_group)]
-        c_group = [found.image_id] + [i for i, _ in slam_map.covisible(found.image_id, c.loop_group)]
-        c_group = [i for i in c_group if i not in q_group]
+        # the sides of the loop by insertion order: in a room the query's covisible keyframes include old ones
+        # (tracked again on the second lap) and the candidate's new ones; a loop edge between two keyframes of the
+        # same side would move an old keyframe by the drift of the new ones
+        mid = (image_id + found.image_id) / 2
+        q_group = [image_id] + [i for i, _ in slam_map.covisible(image_id) if i > mid][:c.loop_group]
+        c_group = [found.image_id] + [i for i, _ in slam_map.covisible(found.image_id) if i < mid][:c.loop_group]
         edges += [loop_edge(a, b, poses[a], poses[b], sim) for a in q_group for b in c_group]
         fixed = {found.image_id, ids[0]} - set(q_group)
         result = optimize_pose_graph(poses, edges, fixed or {ids[0]}, PoseGraphConfig())
@@ -398,9 +416,10 @@ def _around(slam_map: "SlamMap", image_id: int, span: int) -> list[int]:
     return ids[max(0, at - span):at + span + 1]
 
 
-def _keyframe_points(slam_map: "SlamMap", image_ids: list[int]) -> tuple[np.ndarray, np.ndarray, bool]:
-    """(M,) unique map point ids observed by the keyframes and (M, D) the descriptor of the first observation."""
-    ids, desc, seen, binary = [], [], set(), True
+def _keyframe_points(slam_map: "SlamMap", image_ids: list[int]) -> tuple[np.ndarray, np.ndarray, bool, np.ndarray]:
+    """(M,) unique map point ids observed by the keyframes, (M, D) the descriptor of the first observation,
+    whether descriptors are binary, and (M, 2) int64 that observation (image id, keypoint index)."""
+    ids, desc, obs, seen, binary = [], [], [], set(), True
     for i in image_ids:
         kf = slam_map.keyframes[i]
         binary = kf.features.binary
@@ -411,8 +430,34 @@ def _keyframe_points(slam_map: "SlamMap", image_ids: list[int]) -> tuple[np.ndar
                 seen.add(p)
                 ids.append(p)
                 desc.append(kf.features.descriptors[j])
+                obs.append((i, j))
     d = np.array(desc) if desc else np.zeros((0, 32), np.uint8)
-    return np.array(ids, np.int64), d, binary
+    return np.array(ids, np.int64), d, binary, np.array(obs, np.int64).reshape(-1, 2)
+
+
+def _refine_by_reprojection(slam_map: "SlamMap", q_xyz: np.ndarray, q_obs: np.ndarray, c_xyz: np.ndarray,
+                            c_obs: np.ndarray, verification) -> tuple[np.ndarray, np.ndarray]:
+    """The verified Sim(3) refined by reprojection (:func:`~slamkit.loop_verification.refine_sim3`, from its
+    3D-3D inliers) and the (N,) bool matched pairs that reproject through it in both keyframes. Pair i: the
+    query point at ``q_xyz[i]`` observed as ``q_obs[i]`` = (image id, keypoint) in the query keyframe, the
+    candidate point likewise in a keyframe of the candidate's group."""
+    def side(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        poses = {i: _matrix(slam_map.cam_from_world(i)) for i in np.unique(obs[:, 0]).tolist()}
+        xy = np.zeros((len(obs), 2))
+        scales = np.ones(len(obs))
+        for i in poses:
+            sel = obs[:, 0] == i
+            kf = slam_map.keyframes[i]
+            xy[sel] = kf.keypoints[obs[sel, 1]]
+            scales[sel] = keypoint_scales(kf.features)[obs[sel, 1]]
+        return np.stack([poses[i] for i in obs[:, 0].tolist()]).reshape(-1, 4, 4), xy, scales
+
+    if len(q_obs) == 0:
+        return verification.tgt_from_src, np.zeros(0, bool)
+    T_q, xy_q, s_q = side(q_obs)  # one keyframe: the query
+    T_c, xy_c, s_c = side(c_obs)
+    return refine_sim3(verification.tgt_from_src, slam_map.camera.K, q_xyz, T_q[0], xy_q, s_q, c_xyz, T_c, xy_c, s_c,
+                       initial_inliers=verification.inlier_mask)
 
 
 def _fuse(slam_map: "SlamMap", pairs: np.ndarray) -> int:
