@@ -302,7 +302,9 @@ class Slam:
         timings["initialize"] = time.perf_counter() - t
         if not res.initialized:  # meanwhile a frame that only turns gets its orientation (rotation_phase)
             record.status, st.init_message = INITIALIZING, res.reason if res.status == "failed" else st.init_message
+            t = time.perf_counter()
             turn = self.rotation_phase.step(st, self.initializer, ff, record, self.camera.K)
+            timings["rotation"] = time.perf_counter() - t
             return self._result(record, INITIALIZING, turn.note + res.reason, timings, **turn.fields)
         # a new segment with the two initial keyframes; the rest of the window is tracked below
         st.start_segment(res.slam_map, res.frames, [f for f in res.frames if f.index < res.second and f.index != res.first])
@@ -368,7 +370,9 @@ class Slam:
         ``RotationPhase.track_lost``), after ``max_lost_frames`` such frames (or with an empty local map) the
         segment ends and the next frames initialize a new one."""
         st = self.state
+        t = time.perf_counter()
         turn = self.rotation_phase.track_lost(st, ff, record, self.camera.K)
+        timings["rotation"] = timings.get("rotation", 0.0) + time.perf_counter() - t
         if turn.oriented:
             return self._result(record, TRACKED, turn.note + tr.reason, timings, **turn.fields)
         record.status = LOST

@@ -105,7 +105,9 @@ class RotationPhase:
 
     def finish(self, state: SlamState, initializer: Initializer, camera) -> int:
         """:func:`rotation_only_segment` when the run has no map segment at all."""
-        return rotation_only_segment(state, initializer, camera) if self.config.enabled and not state.segments else 0
+        if not self.config.enabled or state.segments:
+            return 0
+        return rotation_only_segment(state, initializer, camera, self.config.min_rotation_only_deg)
 
 
 def track_rotation(state: SlamState, initializer: Initializer, selector: MotionModelSelector, ff: FrameFeatures,
@@ -197,15 +199,20 @@ def anchor_rotation_chains(state: SlamState) -> list[int]:
     return posed
 
 
-def rotation_only_segment(state: SlamState, initializer: Initializer, camera) -> int:
+def rotation_only_segment(state: SlamState, initializer: Initializer, camera, min_rotation_deg: float = 0.0) -> int:
     """No map was made: the longest rotation chain becomes a segment whose map has one keyframe (its first
     frame still buffered, at the identity) and no points; every frame of the chain is posed by its
     orientation with the keyframe's centre (``Segment.rotation_only``). ``camera``: the run's Intrinsics.
-    Returns the frames posed (0 without a chain)."""
+    Returns the frames posed (0 without a chain, or when the chain turns less than ``min_rotation_deg`` from
+    its first frame: a still camera is not a rotation)."""
     buffered = {f.index: f for f in initializer.history + initializer.frames}
     best = max(_chains(state).values(), key=len, default=[])
     first = next((r for r in best if r.index in buffered), None)
     if first is None or len(best) < 2:
+        return 0
+    turned = max(np.degrees(np.arccos(np.clip((np.trace(r.orientation @ first.orientation.T) - 1) / 2, -1, 1)))
+                 for r in best)
+    if turned < min_rotation_deg:
         return 0
     kf = buffered[first.index]
     slam_map = SlamMap(camera)

@@ -47,9 +47,15 @@ class MotionModelSelectionConfig:
     """Hypotheses tried per model: for the rotation (two matches each), and at most this many for the
     essential matrix (five matches each; pycolmap's default of 1,000 at least costs ~0.3 s per frame)."""
     random_seed: int = 0
+    min_rotation_only_deg: float = 5.0
+    """A run without a map is posed as "rotation only" when its longest rotation chain turns at least this far
+    from its first frame: a still camera has no rotation to show, and a small sideways step looks like a
+    turn of a few degrees (0.17 m across a wall 3.2 m away: 3 degrees), so both stay unposed, their reason
+    said."""
 
     def validate(self) -> "MotionModelSelectionConfig":
         check_fields(self, "motion_model", {"sigma_px": "(0, 100]", "min_matches": "[5, inf)",
+                                            "min_rotation_only_deg": "[0, 180]",
                                             "max_error_px": "(0, 1e9]", "ransac_iterations": "[1, inf)",
                                             "random_seed": "[0, inf)"})
         return self
