@@ -28,7 +28,7 @@ from .map import SlamMap
 from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
 from .rotation_phase import RotationPhase
-from .run_camera import (camera_report, choose_camera, clamped, describe_camera, final_global_ba, first_estimate,
+from .run_camera import (camera_report, choose_camera, describe_camera, final_global_ba, first_estimate,
                          refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
 from .sources import open_source
@@ -273,10 +273,6 @@ class Slam:
         self.state.wall_time += time.perf_counter() - t
         self.state.cpu_time += time.process_time() - cpu
         return cal
-
-    def _use_focal(self, focal: float, cx: float | None = None, cy: float | None = None) -> None:
-        """Track and initialize with this focal length (and principal point) from now on."""
-        self._use_camera(clamped(self.camera, focal, cx, cy))
 
     def _use_camera(self, camera) -> None:
         self.camera = camera

@@ -7,7 +7,7 @@ over the first frames; :func:`clamped` is the focal length (and principal point)
 :func:`refines` says whether a bundle adjustment refines it; :func:`refined_camera` takes what a refining BA
 found back into the run's camera; and :func:`final_global_ba` is the last global BA of a segment, with one
 radial coefficient (COLMAP's SIMPLE_RADIAL) when the main map's camera is estimated. The pipeline keeps only
-the calls (:meth:`slamkit.Slam.calibrate`, ``Slam._use_focal``); the estimate itself lives in
+the calls (:meth:`slamkit.Slam.calibrate`, ``Slam._use_camera``); the estimate itself lives in
 :mod:`slamkit.stages.self_calibration`.
 """
 
