@@ -18,9 +18,27 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import signal
+
 import numpy as np
 import pycolmap
-import pyceres
+
+
+def _import_pyceres():
+    """pyceres, imported with SIGTERM's disposition kept: its import installs glog's failure handler, which
+    catches SIGTERM and prints a stack trace (the worker processes of ``slamkit ablate``, stopped by their
+    parent, wrote theirs into one stream, interleaved)."""
+    before = signal.getsignal(signal.SIGTERM)
+    import pyceres
+    try:
+        if before is not None:
+            signal.signal(signal.SIGTERM, before)
+    except ValueError:  # not the main thread: signals can only be set there
+        pass
+    return pyceres
+
+
+pyceres = _import_pyceres()
 
 from .map import CAMERA_ID, SlamMap, keypoint_scales
 

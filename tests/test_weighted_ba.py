@@ -10,6 +10,11 @@ at sqrt(5.991) on the whitened error).
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pycolmap
 import pytest
@@ -71,3 +76,13 @@ def test_weighting_is_a_checked_option_and_the_default_is_colmaps():
     assert SlamConfig().with_overrides(**{"ba.weighting": "level"}).ba.weighting == "level"
     with pytest.raises(ConfigError, match="ba.weighting"):
         BundleAdjustmentConfig(weighting="octave").validate()
+
+
+def test_importing_the_pipeline_leaves_sigterm_to_terminate_quietly():
+    """pyceres' import installs glog's failure handler for SIGTERM (a stack trace on stderr); slamkit puts the
+    default back, so a worker stopped by its parent ends with SIGTERM's status and says nothing."""
+    code = "import os, signal, slamkit.pipeline, slamkit.weighted_ba; os.kill(os.getpid(), signal.SIGTERM)"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120,
+                          cwd=Path(__file__).resolve().parents[1])
+    assert proc.returncode == -signal.SIGTERM, proc.stderr[-2000:]
+    assert b"stack trace" not in proc.stderr and b"SIGTERM" not in proc.stderr, proc.stderr[-2000:]
