@@ -28,8 +28,8 @@ from .map import SlamMap
 from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
 from .rotation_phase import RotationPhase
-from .run_camera import (camera_report, choose_camera, describe_camera, final_global_ba, first_estimate,
-                         refined_camera, refines)
+from .run_camera import (calibrate_radial, camera_report, choose_camera, describe_camera, final_global_ba,
+                         first_estimate, radial_due, refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
 from .sources import open_source
 from .sources.base import FrameSource
@@ -279,9 +279,6 @@ class Slam:
         self.loader.camera = camera  # no distortion is known while tracking: the keypoints are the same
         self.initializer.set_camera(camera)
 
-    def _refining(self, slam_map: SlamMap, final: bool = False) -> bool:
-        return refines(self.calibrator, slam_map, final)
-
     def _refined(self, slam_map: SlamMap, final: bool = False, k1: float = 0.0, before: float | None = None) -> None:
         """After a refining BA: its focal length (and ``k1``) used from now on, and recorded by the calibrator."""
         self._use_camera(refined_camera(self.camera, slam_map, k1))
@@ -464,13 +461,16 @@ class Slam:
 
     def _adjust(self, seg: Segment, adjust: Callable):
         """A BA of ``seg``'s map (``adjust(slam_map, refine_focal=...)``), refining the focal length when
-        self-calibration says so; its normalization applied to the frames' poses. Returns its result."""
-        refine = self._refining(seg.slam_map)
+        self-calibration says so, then a given camera's radial distortion when due. Returns the BA's result."""
+        refine = refines(self.calibrator, seg.slam_map)
         bres = adjust(seg.slam_map, refine_focal=refine)
         if refine:
             self._refined(seg.slam_map)
         if bres.normalization is not None:
             self.state.apply_normalization(seg, float(bres.normalization.scale))
+        if radial_due(self.calibrator, self.camera, seg.slam_map, self.config):  # a given camera's distortion
+            self.loader.drain()  # a frame read ahead is loaded again, its keypoints undistorted with k1
+            self._use_camera(calibrate_radial(self.state, seg, self.bundle_adjuster, self.camera, self.config))
         return bres
 
     def _merge_maps(self, candidate: MergeCandidate) -> MergeResult:
@@ -512,7 +512,7 @@ class Slam:
         main = st.main_segment
         for seg in st.segments:
             if self.config.ba.final_global and seg.slam_map.num_keyframes >= 3:
-                refine = seg is main and self._refining(seg.slam_map, final=True)
+                refine = seg is main and refines(self.calibrator, seg.slam_map, final=True)
                 sc = self.config.self_calibration
                 before, k1 = final_global_ba(st, seg, self.bundle_adjuster, refine, refine and sc.refine_radial,
                                              sc.max_radial)

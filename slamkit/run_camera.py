@@ -129,6 +129,30 @@ def final_global_ba(state: SlamState, seg: Segment, adjuster: BundleAdjuster, re
     return before, float(k1)
 
 
+def radial_due(cal: SelfCalibrator | None, camera: Intrinsics, slam_map: SlamMap, config: SlamConfig) -> bool:
+    """Whether :func:`calibrate_radial` follows this BA of ``slam_map``: the camera is given (no
+    self-calibration) with one focal length (COLMAP's SIMPLE_RADIAL has one), and the map has just reached
+    ``ba.radial_keyframes`` keyframes (0: never)."""
+    keyframes = config.ba.radial_keyframes
+    return (cal is None and keyframes > 0 and slam_map.num_keyframes == keyframes
+            and abs(camera.fx / camera.fy - 1) < 1e-6)
+
+
+def calibrate_radial(state: SlamState, seg: Segment, adjuster: BundleAdjuster, camera: Intrinsics,
+                     config: SlamConfig) -> Intrinsics:
+    """The radial distortion a given camera's calibration leaves in the images: one global BA of ``seg`` with
+    SIMPLE_RADIAL, focal length and principal point held, estimates ``k1``; the map's keypoints (and the
+    frames to track again) are undistorted with it. Returns ``camera`` with ``k1`` added to its own first
+    coefficient (to first order the two add up), so that the next frames' keypoints are undistorted too; the
+    camera unchanged when ``k1`` moves no pixel or is beyond ``self_calibration.max_radial``."""
+    seg.slam_map.use_radial_camera()
+    bres = adjuster.adjust_global(seg.slam_map, refine_radial=True)
+    if bres.normalization is not None:
+        state.apply_normalization(seg, float(bres.normalization.scale))
+    k1 = use_radial(seg, config.self_calibration.max_radial)
+    return replace(camera, dist=(camera.dist[0] + k1, *camera.dist[1:])) if k1 else camera
+
+
 def camera_report(camera: Intrinsics, origin: str, cal: SelfCalibrator | None) -> dict:
     """The camera used and how it was obtained (with self-calibration: its estimate, uncertainty and
     history), JSON-serialisable."""
@@ -145,4 +169,5 @@ def describe_camera(camera: Intrinsics, origin: str, cal: SelfCalibrator | None)
 
 
 __all__ = ["choose_camera", "first_estimate", "with_radial", "clamped", "refines", "refined_camera", "use_radial",
-           "final_global_ba", "camera_report", "describe_camera"]
+           "final_global_ba", "radial_due",
+           "calibrate_radial", "camera_report", "describe_camera"]

@@ -136,6 +136,7 @@ def _write_state_files(slam: "Slam", folder: Path) -> None:
         "bundle_adjuster": slam.bundle_adjuster.state(),
         "initializer": _window_to(slam.initializer.window, arrays),
         "self_calibration": slam.calibrator.state() if getattr(slam, "calibrator", None) is not None else None,
+        "camera_dist": list(slam.camera.dist),  # a given camera's k1 estimated in the run (calibrate_radial)
     }
     np.savez(folder / "state.npz", **arrays)
     (folder / SESSION_FILE).write_text(json.dumps(meta, indent=1, default=_json_default))
@@ -364,6 +365,8 @@ def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
             cam = seg.slam_map.camera if seg is not None else slam.camera
             slam._use_camera(with_radial(clamped(slam.camera, slam.calibrator.focal, cam.cx, cam.cy),
                                          slam.calibrator.k1))
+    elif slam.calibrator is None and meta.get("camera_dist") not in (None, list(slam.camera.dist)):
+        slam._use_camera(dataclasses.replace(slam.camera, dist=tuple(float(v) for v in meta["camera_dist"])))
     slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(

@@ -1,4 +1,4 @@
-"""A given camera's radial distortion, estimated in the run (``self_calibration.radial_keyframes``): rectified
+"""A given camera's radial distortion, estimated in the run (``ba.radial_keyframes``): rectified
 KITTI images keep k1 = 0.015, which calib.txt's pinhole does not describe. Against exact rendered geometry: a
 lens with k1 = 0.05 given as a plain pinhole."""
 
@@ -41,8 +41,8 @@ def test_a_given_pinhole_learns_the_lens_k1_and_the_trajectory_gains(given_pinho
 
 
 def test_the_seed_preset_and_zero_keep_the_given_pinhole():
-    assert SlamConfig().self_calibration.radial_keyframes == 20
-    assert SlamConfig.preset("seed").self_calibration.radial_keyframes == 0
+    assert SlamConfig().ba.radial_keyframes == 20
+    assert SlamConfig.preset("seed").ba.radial_keyframes == 0
 
 
 def test_a_resumed_run_keeps_the_estimated_k1(given_pinhole):

@@ -32,6 +32,10 @@ class BundleAdjustmentConfig:
     """Global BA when the number of keyframes has grown by this fraction since the last global BA (1.0: at
     8, 16, 32, 64, ... keyframes): the cost of global BA stays proportional to the map built; more frequent
     global BA was no more accurate (benchmarks/HISTORY.md, "Measurements moved from docstrings")."""
+    radial_keyframes: int = 20
+    """A given camera (no self-calibration; one focal length): when a map reaches this many keyframes, one global
+    BA estimates the radial distortion left in the images (rectified KITTI keeps k1 = 0.015: 0.373 -> 0.17 m),
+    as COLMAP refines a given camera's extra parameters (:func:`~slamkit.run_camera.calibrate_radial`). 0: never."""
     global_min_keyframes: int = 8
     """No periodic global BA before the map has this many keyframes (early maps are ill-conditioned)."""
     global_max_keyframes: int = 250
@@ -91,7 +95,7 @@ class BundleAdjustmentConfig:
             "global_growth": "(0, 100]", "global_min_keyframes": "[0, inf)", "global_max_keyframes": "[0, inf)",
             "global_iterations": "[1, inf)", "max_reproj_error_px": "(0, 1e9]", "min_tri_angle_deg": "[0, 45)",
             "outlier_chi2": ("[0, 1e9]", "0: COLMAP's flat max_reproj_error_px"), "local_passes": "[1, 5]",
-            "function_tolerance": "[0, 1)",
+            "function_tolerance": "[0, 1)", "radial_keyframes": "[0, inf)",
             "num_threads": ("[-1, 1024]", "-1: all cores, else 1 to 1024 threads")})
         if self.num_threads == 0:
             raise ConfigError("ba.num_threads must be -1 (all cores) or a number of threads >= 1 (got 0)")
@@ -160,7 +164,7 @@ class BundleAdjuster:
         return bundle_adjustment_options(iterations, c.loss, c.refine_intrinsics or refine_focal,
                                          c.function_tolerance, c.num_threads,
                                          refine_principal_point=refine_focal and self.refine_principal_point,
-                                         refine_extra_params=refine_focal and refine_radial)
+                                         refine_extra_params=refine_radial)
 
     def global_due(self, slam_map: SlamMap) -> bool:
         n = slam_map.num_keyframes
@@ -251,14 +255,15 @@ class BundleAdjuster:
                       min_tri_angle_deg: float | None = None, refine_focal: bool = False,
                       refine_radial: bool = False) -> BundleAdjustmentResult:
         """Every keyframe, two poses fixed (the gauge). ``refine_focal``: the focal length too (and the principal
-        point when the adjuster was made with ``refine_principal_point``); with ``refine_radial`` the radial
-        coefficient of a SIMPLE_RADIAL map camera (:meth:`SlamMap.use_radial_camera`) as well."""
+        point when the adjuster was made with ``refine_principal_point``); ``refine_radial``: the radial
+        coefficient of a SIMPLE_RADIAL map camera (:meth:`SlamMap.use_radial_camera`), with or without the focal
+        length."""
         t0 = time.perf_counter()
         rec = slam_map.reconstruction
         cfg = pycolmap.BundleAdjustmentConfig()
         for i in slam_map.keyframes:
             cfg.add_image(i)
-        if not (self.config.refine_intrinsics or refine_focal):
+        if not (self.config.refine_intrinsics or refine_focal or refine_radial):
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
