@@ -27,7 +27,7 @@ from .local_map import LocalMap
 from .map import SlamMap
 from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
-from .rotation_phase import RotationPhase
+from .rotation_phase import RotationPhase, posed_by_pnp
 from .run_camera import (camera_report, choose_camera, describe_camera, final_global_ba, first_estimate,
                          refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
@@ -322,8 +322,7 @@ class Slam:
             record.status, timings["track"] = SKIPPED, time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
         prediction = self.motion_model.step(st.records, record.index, seg.id, st.pose_of)
-        tr = self.tracker.step(ff, st.local_map, seg.slam_map.pycolmap_camera, prediction.cam_from_world,
-                               st.last_ids)
+        tr = self.tracker.step(ff, st.local_map, seg.slam_map.pycolmap_camera, prediction.cam_from_world, st.last_ids)
         relocalized = False
         if not tr.tracked and self.config.relocalization_candidates > 0:
             t_reloc = time.perf_counter()
@@ -359,7 +358,8 @@ class Slam:
                             inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
                             degenerate=decision.degenerate, parallax_deg=parallax, relocalized=relocalized,
                             tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
-                            merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping)
+                            merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping,
+                            **posed_by_pnp(record, tr.num_inliers))
 
     def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict, ff: FrameFeatures) -> StepResult:
         """Neither the local map nor relocalization found the frame; unless it only turned (posed by rotation:

@@ -54,6 +54,15 @@ class RotationStep:
         return {"motion_model": c.model if c else "", "motion_model_reason": c.reason if c else ""}
 
 
+def posed_by_pnp(record: FrameRecord, num_inliers: int) -> dict:
+    """A frame that tracking (or relocalization) posed by PnP against the map: its motion model is "general"
+    (6-DoF) by construction, so ``record.motion_model`` says so without running GRIC (whose two RANSACs would
+    cost every frame ~10 ms). Returns the frame's ``StepResult`` fields."""
+    record.motion_model = GENERAL
+    return {"motion_model": GENERAL, "motion_model_reason": f"general motion: 6-DoF pose by PnP against the map "
+                                                            f"({num_inliers} inliers; no GRIC needed)"}
+
+
 class RotationPhase:
     """Frames that only turn before a map exists: :meth:`step` per buffered frame, :meth:`anchor` once the
     initializer made a map, :meth:`finish` when none was ever made (the module's docstring explains)."""
@@ -230,5 +239,5 @@ def rotation_only_segment(state: SlamState, initializer: Initializer, camera, mi
     return len(seg.frames)
 
 
-__all__ = ["MIN_KEYFRAME_INLIERS", "ROTATION_ONLY", "RotationPhase", "RotationStep", "anchor_rotation_chains",
+__all__ = ["MIN_KEYFRAME_INLIERS", "ROTATION_ONLY", "RotationPhase", "RotationStep", "anchor_rotation_chains", "posed_by_pnp",
            "rotation_only_segment", "track_rotation"]

@@ -9,12 +9,15 @@ import pytest
 
 from slamkit import Slam, SlamConfig, ate
 from slamkit.errors import ConfigError
+from slamkit.eval.metrics import ROTATION_ONLY_ATE
+from slamkit.eval.report import evaluate_run
 from slamkit.runner import summary_line
 from slamkit.state import ROTATION_ONLY
 from slamkit.sources import open_source
 from slamkit.sources.motions import TURN_FRAMES, pure_rotation, turn_then_walk
 from slamkit.sources.scene import default_room
 from slamkit.sources.synthetic import DEFAULT_CAMERA
+from slamkit.viz.explain import describe_step
 
 
 def _yaw_deg(poses: np.ndarray) -> np.ndarray:
@@ -93,6 +96,13 @@ def test_a_pure_rotation_is_posed_by_its_orientations_within_a_fifth_of_a_degree
     np.testing.assert_allclose(centres, np.broadcast_to(centres[0], centres.shape), atol=1e-9)  # position held
     out = slam.save(tmp_path / "run")
     assert json.loads((out / "summary.json").read_text())["structure"] == ROTATION_ONLY
+    # slamkit eval: no ATE (every centre one point), the rotation error against the rendered truth instead
+    res = evaluate_run(out, plots=False, map_view=False)
+    a = res["all_frames"]["ate"]
+    assert a["undefined"] == ROTATION_ONLY_ATE and a["count"] == 90 and math.isnan(a["rmse"])
+    assert a["rotation_deg"]["rmse"] < 0.1 and a["rotation_deg"]["max"] < 0.2  # degrees (measured 0.03 RMS)
+    assert a["rotation_deg"]["rmse"] <= np.sqrt((err**2).mean()) + 1e-9  # the best alignment, not the first frame's
+    assert ROTATION_ONLY_ATE in (out / "report.md").read_text()
 
 
 def test_turning_then_walking_ends_in_one_map_with_every_frame_posed():
@@ -118,6 +128,11 @@ def test_a_frame_turning_out_of_the_map_is_posed_by_its_rotation_to_the_last_key
     results = slam.run()
     turned = [r for r in results if r.status == "tracked" and r.motion_model == "rotation"]
     assert turned and all("rotation only against keyframe" in r.message for r in turned)
+    # every other tracked frame was posed by PnP in 6-DoF: "general", said without running GRIC on it
+    pnp = [r for r in results if r.status == "tracked" and r not in turned]
+    assert len(pnp) > 10 and all(r.motion_model == "general" and "rotation" not in r.timings for r in pnp)
+    assert all("motion model: general motion: 6-DoF pose by PnP" in describe_step(r) for r in pnp)
+    assert all(slam.records[r.frame_index].motion_model == "general" for r in pnp)
     assert len(slam.summary()["segments"]) == 1
     for r in turned:
         rec = slam.records[r.frame_index]
