@@ -27,7 +27,7 @@ from .local_map import LocalMap
 from .map import SlamMap
 from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
-from .rotation_phase import RotationPhase, posed_by_pnp
+from .rotation_phase import RotationPhase
 from .run_camera import (camera_report, choose_camera, describe_camera, final_global_ba, first_estimate,
                          refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
@@ -359,7 +359,7 @@ class Slam:
                             degenerate=decision.degenerate, parallax_deg=parallax, relocalized=relocalized,
                             tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
                             merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping,
-                            **posed_by_pnp(record, tr.num_inliers))
+                            **self.rotation_phase.posed_by_pnp(st, ff, record, tr.num_inliers))
 
     def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict, ff: FrameFeatures) -> StepResult:
         """Neither the local map nor relocalization found the frame; unless it only turned (posed by rotation:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from .features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from .map import SlamMap
 from .stages.initializer import Initializer
-from .stages.motion_model_selection import (GENERAL, MotionModelChoice, MotionModelSelectionConfig,
+from .stages.motion_model_selection import (GENERAL, ROTATION, MotionModelChoice, MotionModelSelectionConfig,
                                             MotionModelSelector, rotation_from_bearings)
 from .state import ROTATION_ONLY, FrameRecord, FrameStatus, SlamState
 
@@ -54,15 +54,6 @@ class RotationStep:
         return {"motion_model": c.model if c else "", "motion_model_reason": c.reason if c else ""}
 
 
-def posed_by_pnp(record: FrameRecord, num_inliers: int) -> dict:
-    """A frame that tracking (or relocalization) posed by PnP against the map: its motion model is "general"
-    (6-DoF) by construction, so ``record.motion_model`` says so without running GRIC (whose two RANSACs would
-    cost every frame ~10 ms). Returns the frame's ``StepResult`` fields."""
-    record.motion_model = GENERAL
-    return {"motion_model": GENERAL, "motion_model_reason": f"general motion: 6-DoF pose by PnP against the map "
-                                                            f"({num_inliers} inliers; no GRIC needed)"}
-
-
 class RotationPhase:
     """Frames that only turn before a map exists: :meth:`step` per buffered frame, :meth:`anchor` once the
     initializer made a map, :meth:`finish` when none was ever made (the module's docstring explains)."""
@@ -73,6 +64,21 @@ class RotationPhase:
         self.selector = MotionModelSelector(config)
         self.matcher = matcher if matcher is not None else NearestNeighborMatcher(MatchingConfig())
         """Matches a lost frame with the last keyframe (:meth:`track_lost`): the run's matcher, else NN."""
+        self.previous: FrameFeatures | None = None
+        """The last frame posed in a map segment (by PnP or by rotation): the next lost frame's second rotation
+        reference, DT-SLAM's 2-D-only keyframe in its smallest form. Not saved in sessions (a resumed run starts
+        with the keyframe alone)."""
+
+    def posed_by_pnp(self, state: SlamState, ff: FrameFeatures, record: FrameRecord, num_inliers: int) -> dict:
+        """A frame tracking (or relocalization) posed by PnP against the map: its motion model is "general"
+        (6-DoF) by construction, so ``record.motion_model`` says so without running GRIC (whose two RANSACs would
+        cost every frame ~10 ms). The frames just before it that rotation held in place get their centres
+        interpolated (:func:`interpolate_held_centres`). Returns the frame's ``StepResult`` fields."""
+        record.motion_model, self.previous = GENERAL, ff
+        held = interpolate_held_centres(state, record) if self.config.enabled else 0
+        return {"motion_model": GENERAL, "motion_model_reason": f"general motion: 6-DoF pose by PnP against the map "
+                f"({num_inliers} inliers; no GRIC needed)" + (f"; {held} frames held by rotation before it "
+                                                              "re-centred on the way here" if held else "")}
 
     def step(self, state: SlamState, initializer: Initializer, ff: FrameFeatures, record: FrameRecord,
              K: np.ndarray) -> RotationStep:
@@ -91,22 +97,30 @@ class RotationPhase:
         if not self.config.enabled or seg is None or state.last_keyframe not in seg.slam_map.keyframes:
             return RotationStep()
         kf = seg.slam_map.keyframes[state.last_keyframe]
-        m = self.matcher.match(kf.features, ff.features)
-        choice = self.selector.step(kf.keypoints[m[:, 0]], ff.keypoints[m[:, 1]], K)
-        record.motion_model = choice.model
-        if not choice.is_rotation or choice.inliers.sum() < MIN_KEYFRAME_INLIERS // 2:
-            return RotationStep(choice)
-        T = np.eye(4)
-        T[:3] = seg.slam_map.cam_from_world(state.last_keyframe).matrix()
         prev = state.records[record.index - 1] if record.index > 0 else None
         held = state.pose_of(prev) if prev is not None and prev.segment == seg.id else None
-        held = T if held is None else held
+        T_kf = np.eye(4)
+        T_kf[:3] = seg.slam_map.cam_from_world(state.last_keyframe).matrix()
+        refs = [(f"keyframe {state.last_keyframe}", kf.features, kf.keypoints, T_kf)]
+        p = self.previous
+        if held is not None and p is not None and p.index == prev.index and p.index != kf.frame_index:
+            refs.append((f"frame {p.index}", p.features, p.keypoints, held))  # turned too far from the keyframe
+        for name, features, keypoints, T_ref in refs:
+            m = self.matcher.match(features, ff.features)
+            choice = self.selector.step(keypoints[m[:, 0]], ff.keypoints[m[:, 1]], K)
+            record.motion_model = choice.model
+            if choice.is_rotation and choice.inliers.sum() >= MIN_KEYFRAME_INLIERS // 2:
+                break
+        else:
+            return RotationStep(choice)
+        held = T_kf if held is None else held
         centre = -held[:3, :3].T @ held[:3, 3]
-        T[:3, :3] = choice.rotation @ T[:3, :3]
+        T = np.eye(4)
+        T[:3, :3] = choice.rotation @ T_ref[:3, :3]
         T[:3, 3] = -T[:3, :3] @ centre
         state.set_pose(record, state.last_keyframe, T, FrameStatus.TRACKED, absolute=True)
-        state.consecutive_lost, state.last_ids = 0, None
-        return RotationStep(choice, True, f"rotation only against keyframe {state.last_keyframe} (position held); ")
+        state.consecutive_lost, state.last_ids, self.previous = 0, None, ff
+        return RotationStep(choice, True, f"rotation only against {name} (position held); ")
 
     def anchor(self, state: SlamState) -> list[int]:
         """:func:`anchor_rotation_chains` in the current segment (none when tracking lost it again)."""
@@ -177,6 +191,33 @@ def _chains(state: SlamState) -> dict[int, list[FrameRecord]]:
     return out
 
 
+def interpolate_held_centres(state: SlamState, record: FrameRecord) -> int:
+    """``record`` was just posed in 6-DoF: the frames right before it that :meth:`RotationPhase.track_lost` posed
+    by rotation with the position held (``motion_model`` "rotation") get centres interpolated linearly in time
+    between the 6-DoF-posed frame before them and ``record`` (the camera kept walking while it turned; their
+    orientations stay). Returns the frames moved (0 when the run has no 6-DoF frame before it)."""
+    seg, run = state.segment, []
+    i = record.index - 1
+    while i >= 0 and (r := state.records[i]).motion_model == ROTATION and r.rel_pose is not None \
+            and r.segment == seg.id and r.keyframe_image_id <= 0:
+        run.append(r)
+        i -= 1
+    before = state.records[i] if i >= 0 and run else None
+    if before is None or before.rel_pose is None or before.segment != seg.id or (
+            before.motion_model == ROTATION and before.keyframe_image_id <= 0):  # a keyframe's pose is 6-DoF
+        return 0
+    (T0, T1) = state.pose_of(before), state.pose_of(record)
+    c0, c1 = -T0[:3, :3].T @ T0[:3, 3], -T1[:3, :3].T @ T1[:3, 3]
+    for r in run:
+        w = (r.timestamp - before.timestamp) / (record.timestamp - before.timestamp)
+        T = state.pose_of(r)
+        T[:3, 3] = -T[:3, :3] @ ((1 - w) * c0 + w * c1)
+        ref = np.eye(4)
+        ref[:3] = seg.slam_map.cam_from_world(r.ref_image_id).matrix()
+        r.rel_pose = T @ np.linalg.inv(ref)
+    return len(run)
+
+
 def anchor_rotation_chains(state: SlamState) -> list[int]:
     """After initialization: the chain frames still without a pose are posed in the current segment. For each
     chain with posed frames (its keyframes when it has any, else the frames PnP posed against the new map),
@@ -239,5 +280,5 @@ def rotation_only_segment(state: SlamState, initializer: Initializer, camera, mi
     return len(seg.frames)
 
 
-__all__ = ["MIN_KEYFRAME_INLIERS", "ROTATION_ONLY", "RotationPhase", "RotationStep", "anchor_rotation_chains", "posed_by_pnp",
-           "rotation_only_segment", "track_rotation"]
+__all__ = ["MIN_KEYFRAME_INLIERS", "ROTATION_ONLY", "RotationPhase", "RotationStep", "anchor_rotation_chains",
+           "interpolate_held_centres", "rotation_only_segment", "track_rotation"]
