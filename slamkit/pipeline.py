@@ -507,7 +507,6 @@ class Slam:
         except OSError:  # no room for the temporary copy: the finished state is saved, and not extended later
             self.unfinished_session = None
         st.finished = True
-        self.rotation_phase.finish(st, self.initializer, self.camera)  # no map at all: a pure rotation
         t = time.perf_counter()
         main = st.main_segment
         for seg in st.segments:
@@ -524,6 +523,7 @@ class Slam:
             if seg.initial_frames and seg.slam_map.num_keyframes >= 3:  # against the map around its first keyframe
                 first = self._local_map(seg.slam_map, min(seg.slam_map.keyframes))
                 retrack_initial_frames(st, seg, self.tracker, first)
+        self.rotation_phase.finish(st, self.initializer, self.camera)  # a pure rotation; frames held re-centred
         st.timings["track"] = st.timings.get("track", 0.0) + time.perf_counter() - t2
         st.wall_time += time.perf_counter() - t
 

@@ -14,6 +14,14 @@ once the camera walks, the parallax to the keyframe grows until GRIC picks gener
   frames that the map did pose, the centre theirs (the median);
 - when no map is ever made (a pure rotation), :func:`rotation_only_segment` makes a map of one keyframe and no
   points, and every frame of the longest chain gets its orientation: "rotation only: no 3-D structure".
+
+After initialization a frame that tracking loses is posed by its rotation to the last keyframe, or, when it
+has turned too far from it, to the previous posed frame (:meth:`RotationPhase.track_lost`: a chain of 2-D-only
+references, DT-SLAM's rotation keyframes in their smallest form), the position held. Once PnP poses a frame
+again, the held frames before it get centres interpolated in time between the two 6-DoF poses
+(:func:`interpolate_held_centres`), again on the final poses at the end of the run
+(:func:`recentre_held_frames`). Their keypoints are not triangulated into the map yet
+(:mod:`slamkit.stages.deferred_triangulation` is the stage that would).
 """
 
 from __future__ import annotations
@@ -127,9 +135,13 @@ class RotationPhase:
         return anchor_rotation_chains(state) if self.config.enabled and state.segment is not None else []
 
     def finish(self, state: SlamState, initializer: Initializer, camera) -> int:
-        """:func:`rotation_only_segment` when the run has no map segment at all."""
-        if not self.config.enabled or state.segments:
+        """At the end of the run (after the final bundle adjustment): :func:`rotation_only_segment` when the run
+        has no map segment at all, else :func:`recentre_held_frames` on the final poses. Returns the frames
+        posed or moved."""
+        if not self.config.enabled:
             return 0
+        if state.segments:
+            return recentre_held_frames(state)
         return rotation_only_segment(state, initializer, camera, self.config.min_rotation_only_deg)
 
 
@@ -196,15 +208,14 @@ def interpolate_held_centres(state: SlamState, record: FrameRecord) -> int:
     by rotation with the position held (``motion_model`` "rotation") get centres interpolated linearly in time
     between the 6-DoF-posed frame before them and ``record`` (the camera kept walking while it turned; their
     orientations stay). Returns the frames moved (0 when the run has no 6-DoF frame before it)."""
-    seg, run = state.segment, []
+    seg, run = state.segments[record.segment], []
     i = record.index - 1
     while i >= 0 and (r := state.records[i]).motion_model == ROTATION and r.rel_pose is not None \
             and r.segment == seg.id and r.keyframe_image_id <= 0:
         run.append(r)
         i -= 1
     before = state.records[i] if i >= 0 and run else None
-    if before is None or before.rel_pose is None or before.segment != seg.id or (
-            before.motion_model == ROTATION and before.keyframe_image_id <= 0):  # a keyframe's pose is 6-DoF
+    if before is None or before.rel_pose is None or before.segment != seg.id or not _six_dof(before):
         return 0
     (T0, T1) = state.pose_of(before), state.pose_of(record)
     c0, c1 = -T0[:3, :3].T @ T0[:3, 3], -T1[:3, :3].T @ T1[:3, 3]
@@ -216,6 +227,19 @@ def interpolate_held_centres(state: SlamState, record: FrameRecord) -> int:
         ref[:3] = seg.slam_map.cam_from_world(r.ref_image_id).matrix()
         r.rel_pose = T @ np.linalg.inv(ref)
     return len(run)
+
+
+def _six_dof(rec: FrameRecord) -> bool:
+    """Posed in 6-DoF: by PnP ("general") or as a keyframe (bundle-adjusted)."""
+    return rec.motion_model == GENERAL or rec.keyframe_image_id > 0
+
+
+def recentre_held_frames(state: SlamState) -> int:
+    """:func:`interpolate_held_centres` before every 6-DoF-posed frame of every segment, on the poses as they are
+    now (after the final bundle adjustment the frames they lie between may have moved since they were tracked).
+    Returns the frames moved."""
+    return sum(interpolate_held_centres(state, rec) for rec in state.records[1:]
+               if rec.rel_pose is not None and _six_dof(rec) and state.records[rec.index - 1].motion_model == ROTATION)
 
 
 def anchor_rotation_chains(state: SlamState) -> list[int]:
@@ -281,4 +305,4 @@ def rotation_only_segment(state: SlamState, initializer: Initializer, camera, mi
 
 
 __all__ = ["MIN_KEYFRAME_INLIERS", "ROTATION_ONLY", "RotationPhase", "RotationStep", "anchor_rotation_chains",
-           "interpolate_held_centres", "rotation_only_segment", "track_rotation"]
+           "interpolate_held_centres", "recentre_held_frames", "rotation_only_segment", "track_rotation"]
