@@ -20,7 +20,9 @@ Columns, per run (from ``Slam.summary()``, ``Slam.trajectory()`` and :func:`slam
   frames the ATE is computed on);
 * ATE (m): RMSE after Sim(3) alignment of the largest segment's trajectory to ground truth (= evo
   ``evo_ape -as``); keyframe ATE (m): the same over its keyframes only (what ORB-SLAM2's monocular examples
-  save: ``KeyFrameTrajectory.txt``); relocalizations: summed over segments; keyframes; loop closures
+  save: ``KeyFrameTrajectory.txt``); rotation error (deg): RMS angle of ``R_est,aligned^T R_gt`` after the
+  same alignment (= ``evo_ape -as --pose_relation angle_deg``; a run posed by rotation only has its orientations
+  aligned and no ATE: "ATE undefined: rotation only"); relocalizations: summed over segments; keyframes; loop closures
   (``summary()["loop_closures"]``);
 * fx (px), k1: the run's final camera (with self-calibration, the estimate: compare KITTI 07's 707.09 px);
 * fps: frames / wall seconds of the whole run (opening the source to the end of ``run()``, image reading
@@ -147,9 +149,10 @@ CASES = [
 ]
 
 RUN_COLUMNS = ["row", "case", "skip", "seed", "status", "frames", "posed_pct", "segments", "largest_pct",
-               "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame", "wall_s", "keyframes",
+               "ate_m", "ate_kf_m", "rot_deg", "relocalizations", "fps", "cpu_s_per_frame", "wall_s", "keyframes",
                "loop_closures", "focal_px", "k1", "error"]
-MEAN_KEYS = ["posed_pct", "segments", "largest_pct", "ate_m", "ate_kf_m", "relocalizations", "fps", "cpu_s_per_frame",
+MEAN_KEYS = ["posed_pct", "segments", "largest_pct", "ate_m", "ate_kf_m", "rot_deg", "relocalizations", "fps",
+             "cpu_s_per_frame",
              "wall_s", "keyframes", "loop_closures", "focal_px", "k1"]
 
 
@@ -216,7 +219,7 @@ def run_one(case: Case, seed: int, out_dir: Path | None = None) -> dict:
                 "segments": len(s["segments"]), "largest_pct": 100.0 * len(traj) / n,
                 "relocalizations": s["relocalizations"], "fps": n / wall, "cpu_s_per_frame": cpu / n,
                 "wall_s": wall, "keyframes": s["keyframes"], "loop_closures": s["loop_closures"],
-                "ate_m": None, "ate_kf_m": None, "focal_px": slam.camera.fx, "k1": slam.camera.dist[0]}
+                "ate_m": None, "ate_kf_m": None, "rot_deg": None, "focal_px": slam.camera.fx, "k1": slam.camera.dist[0]}
         if gt is None:
             row["error"] = "no ground truth"
         elif len(traj) < 3:
@@ -225,9 +228,14 @@ def run_one(case: Case, seed: int, out_dir: Path | None = None) -> dict:
                 row["error"] += f" ({s['not_initialized_reason']})"
         else:
             try:  # a path ATE cannot align to (all on a line) leaves the other numbers standing
-                row["ate_m"] = float(ate(gt, traj, align="sim3").rmse)
-                # keyframes only, as ORB-SLAM2's monocular examples save their trajectory (KeyFrameTrajectory.txt)
-                row["ate_kf_m"] = float(ate(gt, slam.trajectory(keyframes_only=True), align="sim3").rmse)
+                a = ate(gt, traj, align="sim3")
+                row["rot_deg"] = float(a.rotation.rmse)  # after the same alignment (orientations alone: rotation only)
+                if a.undefined:
+                    row["error"] = a.undefined
+                else:
+                    row["ate_m"] = float(a.rmse)
+                    # keyframes only, as ORB-SLAM2's monocular examples save their trajectory (KeyFrameTrajectory.txt)
+                    row["ate_kf_m"] = float(ate(gt, slam.trajectory(keyframes_only=True), align="sim3").rmse)
             except SlamkitError as e:
                 row["error"] = f"ATE undefined: {e}"
     except Exception as e:  # a failing run is a row of the table, never the end of the suite
@@ -304,6 +312,7 @@ def _progress(r: dict) -> str:
     if r["status"] != "ok":
         return f"{head} ({r['error']})"
     ate_s = "-" if r["ate_m"] is None else f"{r['ate_m']:.4g} m"
+    ate_s += "" if r.get("rot_deg") is None else f" (rotation {r['rot_deg']:.3g} deg)"
     return (f"{head}, posed {r['posed_pct']:.1f} %, {r['segments']} segment(s), largest {r['largest_pct']:.1f} %, "
             f"ATE {ate_s}, {r['relocalizations']} reloc, {r['fps']:.1f} fps, {r['cpu_s_per_frame']:.3f} CPU s/frame, "
             f"fx {r['focal_px']:.1f} px, k1 {r['k1']:.3f}")
@@ -357,15 +366,16 @@ def _cell(row: dict, key: str, fmt: str, scale: float = 1.0) -> str:
 def markdown(rows: list[dict]) -> str:
     """The per-case table (means ± standard errors over seeds)."""
     head = ["case", "skip", "frames", "runs", "posed (%)", "segments", "largest (%)", "ATE (m)", "keyframe ATE (m)",
-            "relocalizations", "keyframes", "loop closures", "fps", "CPU s/frame", "fx (px)", "k1", "seeds", "notes"]
+            "rotation error (deg)", "relocalizations", "keyframes", "loop closures", "fps", "CPU s/frame", "fx (px)", "k1", "seeds", "notes"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if r["status"] == "skipped":
-            cells = [r["case"], str(r["skip"]), "-", "skipped"] + ["-"] * 13 + [r["error"]]
+            cells = [r["case"], str(r["skip"]), "-", "skipped"] + ["-"] * 14 + [r["error"]]
         else:
             cells = [r["case"], str(r["skip"]), str(r["frames"] or "-"), r["status"],
                      _cell(r, "posed_pct", ".1f"), _cell(r, "segments", ".2g"), _cell(r, "largest_pct", ".1f"),
-                     _cell(r, "ate_m", ".3g"), _cell(r, "ate_kf_m", ".3g"), _cell(r, "relocalizations", ".2g"),
+                     _cell(r, "ate_m", ".3g"), _cell(r, "ate_kf_m", ".3g"), _cell(r, "rot_deg", ".3g"),
+                     _cell(r, "relocalizations", ".2g"),
                      _cell(r, "keyframes", ".4g"), _cell(r, "loop_closures", ".2g"), _cell(r, "fps", ".1f"),
                      _cell(r, "cpu_s_per_frame", ".3f"), _cell(r, "focal_px", ".1f"), _cell(r, "k1", ".3f"),
                      r["seed"], r["error"][:200]]

@@ -21,6 +21,7 @@ from .camera import parse_camera_values
 from .config import PRESETS, SlamConfig, is_camera_path
 from .errors import SlamkitError
 from .eval import evaluate
+from .eval.metrics import ate_line
 from .eval.report import check_posed, evaluate_run
 from .exporter import add_export_parser
 from .eval.pairing import read_frame_table
@@ -160,8 +161,7 @@ def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
         return outcome.exit_code
     print(summary_line(outcome.summary), file=sys.stderr)
     if outcome.ate is not None:
-        print(f"ATE RMSE {outcome.ate['rmse']:.4f} m (Sim(3)-aligned, {outcome.ate['matched']} poses)",
-              file=sys.stderr)
+        print(f"{ate_line(outcome.ate)} ({outcome.ate['matched']} poses)", file=sys.stderr)
     elif outcome.evaluation_error:
         print(f"evaluation skipped: {outcome.evaluation_error}", file=sys.stderr)
     print(f"outputs in {out}/ (trajectory_tum.txt, keyframes_tum.txt, trajectory_kitti.txt, sparse/, points.ply, "
@@ -202,8 +202,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
         result = evaluate_run(run, gt=args.gt, max_dt=args.max_dt, map_view=not args.no_map_view, out=args.out)
         code = _print_notes(result)
         a, k = result["all_frames"]["ate"], (result.get("keyframes") or {}).get("ate")
-        print(f"ATE RMSE {100 * a['rmse']:.2f} cm over {a['count']} frames"
-              + (f", {100 * k['rmse']:.2f} cm over {k['count']} keyframes" if k else "")
+        print(f"{ate_line(a)} over {a['count']} frames"
+              + (f", {100 * k['rmse']:.2f} cm over {k['count']} keyframes" if k and not k.get("undefined") else "")
               + f" (Sim(3)-aligned); report: {result['report_md']} and {result['report_html']}", file=sys.stderr)
         if isinstance(result.get("camera"), dict) and result["camera"].get("description"):
             print(f"camera: {result['camera']['description']}", file=sys.stderr)

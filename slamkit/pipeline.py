@@ -319,8 +319,7 @@ class Slam:
             record.status, timings["track"] = SKIPPED, time.perf_counter() - t
             return self._result(record, SKIPPED, f"{len(ff)} keypoints: featureless frame skipped", timings)
         prediction = self.motion_model.step(st.records, record.index, seg.id, st.pose_of)
-        tr = self.tracker.step(ff, st.local_map, seg.slam_map.pycolmap_camera, prediction.cam_from_world,
-                               st.last_ids)
+        tr = self.tracker.step(ff, st.local_map, seg.slam_map.pycolmap_camera, prediction.cam_from_world, st.last_ids)
         relocalized = False
         if not tr.tracked and self.config.relocalization_candidates > 0:
             t_reloc = time.perf_counter()
@@ -356,7 +355,8 @@ class Slam:
                             inliers=tr.num_inliers, flow=flow, is_keyframe=is_kf, ba=ba_kind,
                             degenerate=decision.degenerate, parallax_deg=parallax, relocalized=relocalized,
                             tracked=tr.matches, reference_keyframe=reference, loop_closure=loop.closure,
-                            merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping)
+                            merge_candidate=loop.merge_candidate, map_merge=merge, mapping=mapping,
+                            **self.rotation_phase.posed_by_pnp(st, ff, record, tr.num_inliers))
 
     def _lost(self, record: FrameRecord, tr: TrackingResult, timings: dict, ff: FrameFeatures) -> StepResult:
         """Neither the local map nor relocalization found the frame; unless it only turned (posed by rotation:
@@ -507,7 +507,6 @@ class Slam:
         except OSError:  # no room for the temporary copy: the finished state is saved, and not extended later
             self.unfinished_session = None
         st.finished = True
-        self.rotation_phase.finish(st, self.initializer, self.camera)  # no map at all: a pure rotation
         t = time.perf_counter()
         main = st.main_segment
         for seg in st.segments:
@@ -524,6 +523,7 @@ class Slam:
             if seg.initial_frames and seg.slam_map.num_keyframes >= 3:  # against the map around its first keyframe
                 first = self._local_map(seg.slam_map, min(seg.slam_map.keyframes))
                 retrack_initial_frames(st, seg, self.tracker, first)
+        self.rotation_phase.finish(st, self.initializer, self.camera)  # a pure rotation; frames held re-centred
         st.timings["track"] = st.timings.get("track", 0.0) + time.perf_counter() - t2
         st.wall_time += time.perf_counter() - t
 

@@ -14,6 +14,14 @@ once the camera walks, the parallax to the keyframe grows until GRIC picks gener
   frames that the map did pose, the centre theirs (the median);
 - when no map is ever made (a pure rotation), :func:`rotation_only_segment` makes a map of one keyframe and no
   points, and every frame of the longest chain gets its orientation: "rotation only: no 3-D structure".
+
+After initialization a frame that tracking loses is posed by its rotation to the last keyframe, or, when it
+has turned too far from it, to the previous posed frame (:meth:`RotationPhase.track_lost`: a chain of 2-D-only
+references, DT-SLAM's rotation keyframes in their smallest form), the position held. Once PnP poses a frame
+again, the held frames before it get centres interpolated in time between the two 6-DoF poses
+(:func:`interpolate_held_centres`), again on the final poses at the end of the run
+(:func:`recentre_held_frames`). Their keypoints are not triangulated into the map yet
+(:mod:`slamkit.stages.deferred_triangulation` is the stage that would).
 """
 
 from __future__ import annotations
@@ -26,7 +34,7 @@ from dataclasses import dataclass
 from .features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from .map import SlamMap
 from .stages.initializer import Initializer
-from .stages.motion_model_selection import (GENERAL, MotionModelChoice, MotionModelSelectionConfig,
+from .stages.motion_model_selection import (GENERAL, ROTATION, MotionModelChoice, MotionModelSelectionConfig,
                                             MotionModelSelector, rotation_from_bearings)
 from .state import ROTATION_ONLY, FrameRecord, FrameStatus, SlamState
 
@@ -64,6 +72,21 @@ class RotationPhase:
         self.selector = MotionModelSelector(config)
         self.matcher = matcher if matcher is not None else NearestNeighborMatcher(MatchingConfig())
         """Matches a lost frame with the last keyframe (:meth:`track_lost`): the run's matcher, else NN."""
+        self.previous: FrameFeatures | None = None
+        """The last frame posed in a map segment (by PnP or by rotation): the next lost frame's second rotation
+        reference, DT-SLAM's 2-D-only keyframe in its smallest form. Not saved in sessions (a resumed run starts
+        with the keyframe alone)."""
+
+    def posed_by_pnp(self, state: SlamState, ff: FrameFeatures, record: FrameRecord, num_inliers: int) -> dict:
+        """A frame tracking (or relocalization) posed by PnP against the map: its motion model is "general"
+        (6-DoF) by construction, so ``record.motion_model`` says so without running GRIC (whose two RANSACs would
+        cost every frame ~10 ms). The frames just before it that rotation held in place get their centres
+        interpolated (:func:`interpolate_held_centres`). Returns the frame's ``StepResult`` fields."""
+        record.motion_model, self.previous = GENERAL, ff
+        held = interpolate_held_centres(state, record) if self.config.enabled else 0
+        return {"motion_model": GENERAL, "motion_model_reason": f"general motion: 6-DoF pose by PnP against the map "
+                f"({num_inliers} inliers; no GRIC needed)" + (f"; {held} frames held by rotation before it "
+                                                              "re-centred on the way here" if held else "")}
 
     def step(self, state: SlamState, initializer: Initializer, ff: FrameFeatures, record: FrameRecord,
              K: np.ndarray) -> RotationStep:
@@ -82,31 +105,43 @@ class RotationPhase:
         if not self.config.enabled or seg is None or state.last_keyframe not in seg.slam_map.keyframes:
             return RotationStep()
         kf = seg.slam_map.keyframes[state.last_keyframe]
-        m = self.matcher.match(kf.features, ff.features)
-        choice = self.selector.step(kf.keypoints[m[:, 0]], ff.keypoints[m[:, 1]], K)
-        record.motion_model = choice.model
-        if not choice.is_rotation or choice.inliers.sum() < MIN_KEYFRAME_INLIERS // 2:
-            return RotationStep(choice)
-        T = np.eye(4)
-        T[:3] = seg.slam_map.cam_from_world(state.last_keyframe).matrix()
         prev = state.records[record.index - 1] if record.index > 0 else None
         held = state.pose_of(prev) if prev is not None and prev.segment == seg.id else None
-        held = T if held is None else held
+        T_kf = np.eye(4)
+        T_kf[:3] = seg.slam_map.cam_from_world(state.last_keyframe).matrix()
+        refs = [(f"keyframe {state.last_keyframe}", kf.features, kf.keypoints, T_kf)]
+        p = self.previous
+        if held is not None and p is not None and p.index == prev.index and p.index != kf.frame_index:
+            refs.append((f"frame {p.index}", p.features, p.keypoints, held))  # turned too far from the keyframe
+        for name, features, keypoints, T_ref in refs:
+            m = self.matcher.match(features, ff.features)
+            choice = self.selector.step(keypoints[m[:, 0]], ff.keypoints[m[:, 1]], K)
+            record.motion_model = choice.model
+            if choice.is_rotation and choice.inliers.sum() >= MIN_KEYFRAME_INLIERS // 2:
+                break
+        else:
+            return RotationStep(choice)
+        held = T_kf if held is None else held
         centre = -held[:3, :3].T @ held[:3, 3]
-        T[:3, :3] = choice.rotation @ T[:3, :3]
+        T = np.eye(4)
+        T[:3, :3] = choice.rotation @ T_ref[:3, :3]
         T[:3, 3] = -T[:3, :3] @ centre
         state.set_pose(record, state.last_keyframe, T, FrameStatus.TRACKED, absolute=True)
-        state.consecutive_lost, state.last_ids = 0, None
-        return RotationStep(choice, True, f"rotation only against keyframe {state.last_keyframe} (position held); ")
+        state.consecutive_lost, state.last_ids, self.previous = 0, None, ff
+        return RotationStep(choice, True, f"rotation only against {name} (position held); ")
 
     def anchor(self, state: SlamState) -> list[int]:
         """:func:`anchor_rotation_chains` in the current segment (none when tracking lost it again)."""
         return anchor_rotation_chains(state) if self.config.enabled and state.segment is not None else []
 
     def finish(self, state: SlamState, initializer: Initializer, camera) -> int:
-        """:func:`rotation_only_segment` when the run has no map segment at all."""
-        if not self.config.enabled or state.segments:
+        """At the end of the run (after the final bundle adjustment): :func:`rotation_only_segment` when the run
+        has no map segment at all, else :func:`recentre_held_frames` on the final poses. Returns the frames
+        posed or moved."""
+        if not self.config.enabled:
             return 0
+        if state.segments:
+            return recentre_held_frames(state)
         return rotation_only_segment(state, initializer, camera, self.config.min_rotation_only_deg)
 
 
@@ -166,6 +201,45 @@ def _chains(state: SlamState) -> dict[int, list[FrameRecord]]:
         if rec.orientation is not None and rec.rotation_chain >= 0:
             out.setdefault(rec.rotation_chain, []).append(rec)
     return out
+
+
+def interpolate_held_centres(state: SlamState, record: FrameRecord) -> int:
+    """``record`` was just posed in 6-DoF: the frames right before it that :meth:`RotationPhase.track_lost` posed
+    by rotation with the position held (``motion_model`` "rotation") get centres interpolated linearly in time
+    between the 6-DoF-posed frame before them and ``record`` (the camera kept walking while it turned; their
+    orientations stay). Returns the frames moved (0 when the run has no 6-DoF frame before it)."""
+    seg, run = state.segments[record.segment], []
+    i = record.index - 1
+    while i >= 0 and (r := state.records[i]).motion_model == ROTATION and r.rel_pose is not None \
+            and r.segment == seg.id and r.keyframe_image_id <= 0:
+        run.append(r)
+        i -= 1
+    before = state.records[i] if i >= 0 and run else None
+    if before is None or before.rel_pose is None or before.segment != seg.id or not _six_dof(before):
+        return 0
+    (T0, T1) = state.pose_of(before), state.pose_of(record)
+    c0, c1 = -T0[:3, :3].T @ T0[:3, 3], -T1[:3, :3].T @ T1[:3, 3]
+    for r in run:
+        w = (r.timestamp - before.timestamp) / (record.timestamp - before.timestamp)
+        T = state.pose_of(r)
+        T[:3, 3] = -T[:3, :3] @ ((1 - w) * c0 + w * c1)
+        ref = np.eye(4)
+        ref[:3] = seg.slam_map.cam_from_world(r.ref_image_id).matrix()
+        r.rel_pose = T @ np.linalg.inv(ref)
+    return len(run)
+
+
+def _six_dof(rec: FrameRecord) -> bool:
+    """Posed in 6-DoF: by PnP ("general") or as a keyframe (bundle-adjusted)."""
+    return rec.motion_model == GENERAL or rec.keyframe_image_id > 0
+
+
+def recentre_held_frames(state: SlamState) -> int:
+    """:func:`interpolate_held_centres` before every 6-DoF-posed frame of every segment, on the poses as they are
+    now (after the final bundle adjustment the frames they lie between may have moved since they were tracked).
+    Returns the frames moved."""
+    return sum(interpolate_held_centres(state, rec) for rec in state.records[1:]
+               if rec.rel_pose is not None and _six_dof(rec) and state.records[rec.index - 1].motion_model == ROTATION)
 
 
 def anchor_rotation_chains(state: SlamState) -> list[int]:
@@ -231,4 +305,4 @@ def rotation_only_segment(state: SlamState, initializer: Initializer, camera, mi
 
 
 __all__ = ["MIN_KEYFRAME_INLIERS", "ROTATION_ONLY", "RotationPhase", "RotationStep", "anchor_rotation_chains",
-           "rotation_only_segment", "track_rotation"]
+           "interpolate_held_centres", "recentre_held_frames", "rotation_only_segment", "track_rotation"]

@@ -206,7 +206,7 @@ def _evaluate(outcome: RunOutcome) -> RunOutcome:
         ev = evaluate(outcome.out / "trajectory_tum.txt", gt)
     except SlamkitError as e:
         return dataclasses.replace(outcome, evaluation_error=str(e))
-    return dataclasses.replace(outcome, ate={"rmse": ev["ate"]["rmse"], "matched": ev["matched"]})
+    return dataclasses.replace(outcome, ate={**ev["ate"], "matched": ev["matched"]})
 
 
 def summary_line(s: dict) -> str:

@@ -42,6 +42,7 @@ def test_run_row_matches_the_runs_summary_and_saved_trajectory(tmp_path):
     gt = open_source("synthetic:jerky?frames=60&jumps=1&jump=4&noise=1&seed=1").ground_truth()
     assert row["ate_m"] == pytest.approx(ate(gt, est).rmse, rel=1e-6)
     assert 0 < row["ate_m"] < 0.05
+    assert row["rot_deg"] == pytest.approx(ate(gt, est).rotation.rmse, rel=1e-6) and 0 < row["rot_deg"] < 1
     # keyframe ATE: the saved keyframe trajectory (ORB-SLAM2's KeyFrameTrajectory.txt)
     kf = read_tum(tmp_path / "run" / "keyframes_tum.txt")
     assert 3 <= len(kf) < len(est)

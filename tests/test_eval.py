@@ -74,6 +74,39 @@ def make_estimate(gt: Trajectory, seed: int = 0, pos_noise: float = 0.02, rot_no
 
 # ------------------------------------------------------------------------------------------ truth
 
+def test_rotation_only_estimate_reports_the_rotation_error_and_no_ate():
+    """Issue 42: a pan from one place (the rendered ``pure-rotation`` truth); the estimate holds one centre and
+    its orientations are the truth's in another frame, each turned by a known angle about a random axis: the
+    rotation error is that angle (the alignment is the rotation nearest to sum R_gt R_est^T), the ATE undefined."""
+    from slamkit.eval.metrics import ROTATION_ONLY_ATE, ate_line
+    from slamkit.sources import open_source
+
+    src = open_source("synthetic:pure-rotation?frames=90")
+    gt = src.ground_truth()
+    assert np.ptp(gt.positions, axis=0).max() == 0  # exact: one centre
+    rng = np.random.default_rng(3)
+    n = len(gt)
+    angles = np.radians(rng.uniform(0.05, 0.4, n))  # degrees -> radians, per frame
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    P = np.tile(np.eye(4), (n, 1, 1))
+    P[:, :3, :3] = SIM3_R @ gt.poses[:, :3, :3] @ rotation_from_rotvec(axes * angles[:, None])
+    P[:, :3, 3] = [0.3, -0.2, 1.0]  # the estimate's one centre, in its own frame
+    est = Trajectory(gt.timestamps.copy(), P)
+    a = ate(gt, est)
+    assert a.undefined == ROTATION_ONLY_ATE and a.alignment.kind == "rotation"
+    assert np.isnan(a.rmse) and a.n_matched == n
+    # the alignment leaves the known per-frame angles, to a small part of them (the mean error it absorbs)
+    np.testing.assert_allclose(a.rotation_errors_deg, np.degrees(angles), atol=0.05)
+    assert a.rotation.rmse == pytest.approx(np.sqrt(np.mean(np.degrees(angles) ** 2)), rel=0.02)
+    np.testing.assert_allclose(a.alignment.rotation, SIM3_R.T, atol=2e-3)
+    res = evaluate(est, gt)
+    assert res["ate"]["undefined"] == ROTATION_ONLY_ATE and res["ate"]["rotation_deg"]["rmse"] == a.rotation.rmse
+    assert ate_line(res["ate"]).startswith("ATE undefined: rotation only; rotation error RMSE")
+    P[:, :3, :3] = SIM3_R @ gt.poses[:, :3, :3]
+    assert ate(gt, Trajectory(gt.timestamps.copy(), P)).rotation.max < 1e-6  # no error added: none found
+
+
 @pytest.mark.parametrize("planar", [False, True])
 def test_exact_sim3_copy_gives_zero_error_and_recovers_the_transform(planar):
     gt = make_gt(planar=planar)
@@ -225,7 +258,10 @@ def test_evaluate_is_json_serialisable_and_reads_files(tmp_path):
     assert back["matched"] == a.n_matched and back["estimate_poses"] == len(est)
     assert back["rpe"]["translation"]["rmse"] == pytest.approx(rpe(gt, est).translation.rmse, abs=1e-12)
     assert back["estimate"] == str(est_path) and back["alignment"]["kind"] == "sim3"
-    assert evaluate(est, gt)["ate"] == summary["ate"]
+    in_memory = evaluate(est, gt)["ate"]
+    rot, rot_file = in_memory.pop("rotation_deg"), summary["ate"].pop("rotation_deg")
+    assert in_memory == summary["ate"]  # the file's quaternions round to 1e-15 degrees of rotation error:
+    assert rot["rmse"] == pytest.approx(rot_file["rmse"], abs=1e-9) and rot["count"] == rot_file["count"]
 
 
 # ------------------------------------------------------------------------------------------ evo
@@ -244,7 +280,9 @@ def evo_api(gt_path: Path, est_path: Path, max_dt: float, delta: float = 1, unit
     est = evo_files.read_tum_trajectory_file(str(est_path))
     ref, est = evo_sync.associate_trajectories(ref, est, max_diff=max_dt)
     out = {"ape": evo_ape(copy.deepcopy(ref), copy.deepcopy(est), evo_metrics.PoseRelation.translation_part,
-                          align=True, correct_scale=True)}
+                          align=True, correct_scale=True),
+           "ape_rot": evo_ape(copy.deepcopy(ref), copy.deepcopy(est), evo_metrics.PoseRelation.rotation_angle_deg,
+                              align=True, correct_scale=True)}
     delta_unit = evo_metrics.Unit.frames if unit == "frames" else evo_metrics.Unit.meters
     for key, relation in (("rpe_trans", evo_metrics.PoseRelation.translation_part),
                           ("rpe_rot", evo_metrics.PoseRelation.rotation_angle_deg)):
@@ -266,6 +304,8 @@ def check_against_evo_api(gt_path: Path, est_path: Path, max_dt: float, **rpe_kw
     np.testing.assert_allclose(a.timestamps, ref["ape"].np_arrays["timestamps"], rtol=0, atol=0)
     np.testing.assert_allclose(a.alignment.matrix(), ref["ape"].np_arrays["alignment_transformation_sim3"],
                                atol=1e-9)
+    np.testing.assert_allclose(a.rotation_errors_deg, ref["ape_rot"].np_arrays["error_array"], atol=EVO_TOL)
+    assert a.rotation.rmse > 0.1 and not a.undefined  # degrees: the estimate's rotation noise is seen
     np.testing.assert_allclose(r.translation_errors, ref["rpe_trans"].np_arrays["error_array"], atol=EVO_TOL)
     np.testing.assert_allclose(r.rotation_errors_deg, ref["rpe_rot"].np_arrays["error_array"], atol=EVO_TOL)
     diffs = [max_stat_diff(ref["ape"].stats, a.stats), max_stat_diff(ref["rpe_trans"].stats, r.translation),

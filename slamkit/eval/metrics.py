@@ -7,6 +7,12 @@ Conventions are evo's (``evo_ape`` / ``evo_rpe``, evo 1.38), so the numbers agre
 2. fit the alignment on the matched camera centres only and apply it to the matched estimate poses
    (:func:`~slamkit.eval.align.estimate_alignment`);
 3. ATE (evo's APE w.r.t. the translation part): per matched frame ``|p_est,aligned - p_gt|`` in metres;
+   beside it the rotation error (evo's APE with ``--pose_relation angle_deg``): the angle of
+   ``R_est,aligned^T R_gt`` in degrees. An estimate whose centres are all one point (a run posed by rotation
+   only, ``state.ROTATION_ONLY``) has no position to align nor to compare: its orientations are aligned by the
+   rotation nearest to ``sum_i R_gt,i R_est,i^T`` (the chordal L2 mean, SO(3)'s analogue of Umeyama's rotation;
+   ``Alignment.kind`` "rotation"), the rotation error is reported and the ATE is undefined (NaN statistics,
+   ``AteResult.undefined`` says why) rather than a distance to the mean of the ground truth;
 4. RPE on the aligned matched poses, for pairs ``(i, j)`` of matched frames chosen on the estimate: with
    ``Q`` ground truth and ``P`` estimate, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the translation error is
    ``|t(E)|`` (metres), the rotation error the angle of ``R(E)`` (degrees). Pairs for ``unit="frames"``
@@ -33,13 +39,15 @@ from .align import Alignment, estimate_alignment
 from .associate import associate
 from .pairing import load_pair
 
-__all__ = ["ErrorStats", "AteResult", "RpeResult", "ate", "rpe", "evaluate", "matched_warning", "MIN_MATCHED",
+__all__ = ["ROTATION_ONLY_ATE", "ErrorStats", "AteResult", "RpeResult", "ate", "ate_line", "rpe", "evaluate", "matched_warning", "MIN_MATCHED",
            "MIN_MATCHED_FRACTION"]
 
 #: fewer matched poses than this raise AssociationError (Umeyama needs 3)
 MIN_MATCHED = 3
 #: evo's default relative tolerance of ``delta`` for all-pairs RPE in metres
 RPE_REL_DELTA_TOL = 0.1
+#: ``AteResult.undefined`` of an estimate posed by rotation only (every camera centre at one point)
+ROTATION_ONLY_ATE = "ATE undefined: rotation only"
 _UNITS = {"frames": "frames", "f": "frames", "m": "m", "meters": "m", "metres": "m"}
 
 
@@ -95,6 +103,10 @@ class AteResult:
     max_dt: float
     offset: float
     gt_span: tuple[float, float]
+    rotation_errors_deg: np.ndarray = None
+    """(K,) degrees per matched frame: the angle of ``R_est,aligned^T R_gt`` (evo_ape ``--pose_relation angle_deg``)."""
+    undefined: str = ""
+    """Why the position error means nothing ("" when it does): :data:`ROTATION_ONLY_ATE`; its stats are then NaN."""
 
     rmse = property(lambda self: self.stats.rmse, doc="metres")
     mean = property(lambda self: self.stats.mean, doc="metres")
@@ -102,6 +114,11 @@ class AteResult:
     std = property(lambda self: self.stats.std, doc="metres")
     min = property(lambda self: self.stats.min, doc="metres")
     max = property(lambda self: self.stats.max, doc="metres")
+
+    @property
+    def rotation(self) -> ErrorStats:
+        """Statistics of ``rotation_errors_deg`` (degrees)."""
+        return ErrorStats.from_errors(self.rotation_errors_deg)
 
     @property
     def n_matched(self) -> int:
@@ -130,14 +147,19 @@ class AteResult:
         if k is None:
             raise ValueError(f"unit must be 'm', 'cm' or 'mm' (got {unit!r})")
         kind = {"sim3": "Sim(3)", "se3": "SE(3)"}.get(self.alignment.kind, self.alignment.kind)
+        rot = self.rotation
+        if self.undefined:
+            return (f"{self.undefined}; rotation error after aligning the orientations: RMSE {rot.rmse:.3g} deg, "
+                    f"max {rot.max:.3g} deg\n  over {self.n_matched} of {self.n_est} estimated poses")
         return (f"ATE after {kind} alignment (scale {self.alignment.scale:.4g}):\n"
                 f"  RMSE {k * self.rmse:.3g} {unit}, mean {k * self.mean:.3g} {unit}, median {k * self.median:.3g} "
-                f"{unit}, max {k * self.max:.3g} {unit}\n"
+                f"{unit}, max {k * self.max:.3g} {unit}; rotation RMSE {rot.rmse:.3g} deg\n"
                 f"  over {self.n_matched} of {self.n_est} estimated poses ({self.n_gt} ground-truth poses)")
 
     def to_dict(self) -> dict:
         """JSON-serialisable summary (no per-frame arrays)."""
-        return {**self.stats.to_dict(), "matched": self.n_matched, "estimate_poses": self.n_est,
+        return {**self.stats.to_dict(), "rotation_deg": self.rotation.to_dict(), "undefined": self.undefined,
+                "matched": self.n_matched, "estimate_poses": self.n_est,
                 "ground_truth_poses": self.n_gt, "estimate_matched_fraction": self.est_matched_fraction,
                 "ground_truth_matched_fraction": self.gt_matched_fraction,
                 "ground_truth_time_coverage": self.gt_time_coverage, "alignment": self.alignment.to_dict(),
@@ -222,16 +244,42 @@ def _match_and_align(gt: Trajectory, est: Trajectory, align: str, max_dt: float,
             f"(offset {offset} s), need at least {MIN_MATCHED}: estimate has {len(est)} poses over "
             f"{_span(est.timestamps)}, ground truth {len(gt)} poses over {_span(gt.timestamps)}")
     gt_m, est_m = gt.subset(idx_gt), est.subset(idx_est)
-    alignment = estimate_alignment(est_m.positions, gt_m.positions, align)
+    if align != "none" and is_rotation_only(est_m.positions):
+        alignment = rotation_alignment(est_m, gt_m)
+    else:
+        alignment = estimate_alignment(est_m.positions, gt_m.positions, align)
     span = (float(gt.timestamps[0]), float(gt.timestamps[-1]))
     return _Matched(gt_m, alignment.apply(est_m), idx_gt, idx_est, alignment, len(gt), len(est), span,
                     float(max_dt), float(offset))
 
 
+def is_rotation_only(positions: np.ndarray) -> bool:
+    """Whether (N, 3) camera centres are all one point (to 1e-9 of their magnitude, at least 1e-9 units)."""
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    return len(p) > 0 and float(np.ptp(p, axis=0).max()) <= 1e-9 * max(1.0, float(np.abs(p).max()))
+
+
+def rotation_alignment(est: Trajectory, gt: Trajectory) -> Alignment:
+    """The alignment of a rotation-only estimate onto ground truth (matched rows): the rotation R nearest to
+    ``sum_i R_gt,i R_est,i^T`` (minimising ``sum_i |R R_est,i - R_gt,i|_F^2``), the estimate's centre moved onto
+    the ground truth's mean centre, scale 1 (a rotation has none). ``kind`` "rotation"."""
+    M = np.einsum("nij,nkj->ik", gt.poses[:, :3, :3], est.poses[:, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    return Alignment(R, gt.positions.mean(axis=0) - R @ est.positions.mean(axis=0), 1.0, "rotation")
+
+
 def _ate(m: _Matched) -> AteResult:
+    rot = rotation_angle_deg(np.einsum("nji,njk->nik", m.est.poses[:, :3, :3], m.gt.poses[:, :3, :3]))
+    undefined = ROTATION_ONLY_ATE if m.alignment.kind == "rotation" else ""
     errors = np.linalg.norm(m.est.positions - m.gt.positions, axis=1)
-    return AteResult(ErrorStats.from_errors(errors), errors, m.est.timestamps.copy(), m.gt.timestamps.copy(),
-                     m.idx_gt, m.idx_est, m.n_est, m.n_gt, m.alignment, m.max_dt, m.offset, m.gt_span)
+    stats = ErrorStats.from_errors(errors)
+    if undefined:  # a distance to the ground truth's mean centre, not an error: NaN statistics
+        stats = ErrorStats(*[float("nan")] * 7, count=len(errors))
+    return AteResult(stats, errors, m.est.timestamps.copy(), m.gt.timestamps.copy(),
+                     m.idx_gt, m.idx_est, m.n_est, m.n_gt, m.alignment, m.max_dt, m.offset, m.gt_span,
+                     np.atleast_1d(rot), undefined)
 
 
 def _pairs_by_frames(n: int, delta: int, all_pairs: bool) -> np.ndarray:
@@ -319,6 +367,16 @@ def rpe(gt: Trajectory, est: Trajectory, delta: float = 1, unit: str = "frames",
     return _rpe(_match_and_align(gt, est, align, max_dt, offset), delta, unit, all_pairs)
 
 
+def ate_line(ate_dict: dict) -> str:
+    """One line for people from an ATE dict (``AteResult.to_dict()`` or ``evaluate(...)["ate"]``): the ATE RMSE in
+    cm and the rotation error's in degrees, or :data:`ROTATION_ONLY_ATE` with the rotation error alone."""
+    rot = (ate_dict.get("rotation_deg") or {}).get("rmse")
+    rot_text = f"rotation error RMSE {rot:.3f} deg" if rot is not None else ""
+    if ate_dict.get("undefined"):
+        return f"{ate_dict['undefined']}; {rot_text} (orientations aligned)"
+    return f"ATE RMSE {100 * ate_dict['rmse']:.2f} cm" + (f", {rot_text}" if rot_text else "")
+
+
 MIN_MATCHED_FRACTION = 0.5
 """An evaluation that matches fewer than this fraction of the estimate's poses to ground truth is not a
 measure of the run: :func:`matched_warning` says so and ``slamkit eval`` exits with a non-zero code."""
@@ -345,7 +403,8 @@ def evaluate(est: Trajectory | str | os.PathLike, gt: Trajectory | str | os.Path
     times 0, 1, 2 s. Keys: ``ate`` (stats in metres), ``rpe`` (``translation`` metres, ``rotation_deg``),
     ``matched``, ``estimate_poses``, ``ground_truth_poses``, the matched fractions, ``alignment``, the
     settings, ``pairing`` ("time", "frame index" or "line"), ``notes`` and ``warnings`` (fewer than half of
-    the estimate matched: :func:`matched_warning`).
+    the estimate matched: :func:`matched_warning`). ``ate`` also holds ``rotation_deg`` (the rotation error's
+    stats, degrees) and ``undefined`` (:data:`ROTATION_ONLY_ATE` for an estimate posed by rotation only).
     """
     for x, name in ((est, "est"), (gt, "gt")):
         if not isinstance(x, Trajectory):
@@ -357,7 +416,7 @@ def evaluate(est: Trajectory | str | os.PathLike, gt: Trajectory | str | os.Path
     result = {
         "estimate": None if isinstance(est, Trajectory) else str(Path(est)),
         "ground_truth": None if isinstance(gt, Trajectory) else str(Path(gt)),
-        "ate": a.stats.to_dict(),
+        "ate": {**a.stats.to_dict(), "rotation_deg": a.rotation.to_dict(), "undefined": a.undefined},
         "rpe": r.to_dict(),
         "matched": a.n_matched,
         "estimate_poses": a.n_est,

@@ -217,6 +217,9 @@ def _plots(dest: Path, summary: dict, est: Trajectory, gt_traj: Trajectory, kf_t
     aligned = a.alignment.apply(est.subset(a.idx_est))
     gt_m = gt_traj.subset(a.idx_gt)
     title = str(summary.get("source", dest.name))
+    if a.undefined:  # rotation only: every centre at one point, no position error to draw
+        return {"timings": P.plot_timings(timings, int(summary.get("frames") or 0), pdir / "timings.png")
+                if timings else None}
     files["trajectory"] = P.plot_trajectory_views(gt_m.positions, aligned.positions, a.errors,
                                                   pdir / "trajectory.png", title=title,
                                                   gt_full_xyz=gt_traj.positions)
@@ -266,11 +269,13 @@ def _row(name: str, part: dict | None) -> str:
     a, rp = part["ate"], part["rpe"]
     t = rp.get("translation", {}).get("rmse")
     d = rp.get("rotation_deg", {}).get("rmse")
+    rot = (a.get("rotation_deg") or {}).get("rmse")
+    note = (f"{a['undefined']}; rotation error RMSE {rot:.3f}°" if a.get("undefined") else
+            f"scale {a['alignment'].get('scale', float('nan')):.4g}"
+            + (f"; rotation error RMSE {rot:.3f}°" if rot is not None else ""))
+    rpe_cell = f"{_cm(t)} cm, {d:.3f}°" if d is not None else "–"
     return (f"| {name} | {a['count']} | {_cm(a['rmse'])} | {_cm(a['mean'])} | {_cm(a['median'])} | {_cm(a['max'])} "
-            f"| {_cm(t)} cm, {d:.3f}° | scale {a['alignment'].get('scale', float('nan')):.4g} |"
-            if d is not None else
-            f"| {name} | {a['count']} | {_cm(a['rmse'])} | {_cm(a['mean'])} | {_cm(a['median'])} | {_cm(a['max'])} "
-            f"| – | scale {a['alignment'].get('scale', float('nan')):.4g} |")
+            f"| {rpe_cell} | {html.escape(note)} |")
 
 
 def _report(res: dict, run: Path, dest: Path) -> tuple[str, str]:
@@ -279,7 +284,12 @@ def _report(res: dict, run: Path, dest: Path) -> tuple[str, str]:
               else f"paired by {res['pairing']}")
     lines = [f"# Evaluation of `{run.name}`", "",
              f"Estimate `{Path(res['estimate']).name}` against `{res['ground_truth']}`; Sim(3) alignment "
-             f"(Umeyama on the matched camera centres), {paired}.", ""]
+             f"(Umeyama on the matched camera centres), {paired}; rotation error: the angle of "
+             "R_est,aligned^T R_gt (evo_ape --pose_relation angle_deg).", ""]
+    if res["all_frames"]["ate"].get("undefined"):
+        lines += [f"**{res['all_frames']['ate']['undefined']}**: every estimated camera centre is one point, so "
+                  "the orientations are aligned by the rotation nearest to sum R_gt R_est^T and only the rotation "
+                  "error is reported.", ""]
     for text in [f"Note: {n}" for n in res.get("notes", [])] + [f"**Warning**: {w}" for w in res.get("warnings", [])]:
         lines += [text, ""]
     lines += ["| poses | matched | ATE RMSE [cm] | mean | median | max | RPE (1 frame) RMSE | note |",
