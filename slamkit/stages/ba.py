@@ -32,10 +32,12 @@ class BundleAdjustmentConfig:
     """Global BA when the number of keyframes has grown by this fraction since the last global BA (1.0: at
     8, 16, 32, 64, ... keyframes): the cost of global BA stays proportional to the map built; more frequent
     global BA was no more accurate (benchmarks/HISTORY.md, "Measurements moved from docstrings")."""
-    radial_keyframes: int = 20
-    """A given camera (no self-calibration; one focal length): when a map reaches this many keyframes, one global
-    BA estimates the radial distortion left in the images (rectified KITTI keeps k1 = 0.015: 0.373 -> 0.17 m),
-    as COLMAP refines a given camera's extra parameters (:func:`~slamkit.run_camera.calibrate_radial`). 0: never."""
+    radial_keyframes: int = 0
+    """A given camera (no self-calibration; one focal length): when a map reaches this many keyframes (20 is
+    measured), one global BA estimates the radial distortion left in the images, as COLMAP refines a given
+    camera's extra parameters (:func:`~slamkit.run_camera.calibrate_radial`). 0 (default): never. KITTI 07
+    (rectified, k1 = 0.015 left) 0.373 -> 0.146 m, but 7-Scenes 2.93 -> 3.29 cm and a rendered pinhole street
+    0.35 -> 0.50 m (a spurious k1 of +-0.03); benchmarks/HISTORY.md, "Session 21"."""
     global_min_keyframes: int = 8
     """No periodic global BA before the map has this many keyframes (early maps are ill-conditioned)."""
     global_max_keyframes: int = 250
