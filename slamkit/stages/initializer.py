@@ -25,7 +25,7 @@ from ..errors import ConfigError, check_fields, native_seed
 from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, bundle_adjustment_options, pycolmap_camera
-from ..state import FrameStatus
+from ..state import GENERAL, FrameStatus
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..results import StepResult
@@ -409,6 +409,8 @@ def track_window(state: "SlamState", res: "InitResult", tracker, track_frame: Ca
     frames = sorted(res.frames, key=lambda f: f.index)
     camera = res.slam_map.pycolmap_camera
     posed = [res.first, res.second]
+    for i in posed:  # the initial pair: 6-DoF, whatever GRIC said while the map did not exist
+        state.records[i].motion_model = GENERAL
     between = [f for f in frames if res.first < f.index < res.second]
     before = [f for f in reversed(frames) if f.index < res.first]
     for seq in (between, before):
@@ -418,6 +420,7 @@ def track_window(state: "SlamState", res: "InitResult", tracker, track_frame: Ca
             rec = state.records[f.index]
             if tr.tracked:
                 state.set_pose(rec, state.last_keyframe, tr.cam_from_world, FrameStatus.TRACKED, absolute=True)
+                rec.motion_model = GENERAL  # posed by PnP
                 posed.append(f.index)
                 neighbour = tr.cam_from_world
             else:

@@ -27,9 +27,7 @@ import numpy as np
 import pycolmap
 
 from ..errors import check_fields, native_seed
-
-ROTATION, GENERAL = "rotation", "general"
-"""The models :class:`MotionModelSelector` chooses between (``MotionModelChoice.model``; "" = undecided)."""
+from ..state import GENERAL, ROTATION  # the models chosen between (MotionModelChoice.model; "" = undecided)
 
 
 @dataclass(frozen=True)
