@@ -32,6 +32,7 @@ import pycolmap
 from dataclasses import dataclass
 
 from .features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
+from .geometry import rotation_angle_deg
 from .map import SlamMap
 from .stages.initializer import Initializer
 from .stages.motion_model_selection import (GENERAL, ROTATION, MotionModelChoice, MotionModelSelectionConfig,
@@ -284,9 +285,7 @@ def rotation_only_segment(state: SlamState, initializer: Initializer, camera, mi
     first = next((r for r in best if r.index in buffered), None)
     if first is None or len(best) < 2:
         return 0
-    turned = max(np.degrees(np.arccos(np.clip((np.trace(r.orientation @ first.orientation.T) - 1) / 2, -1, 1)))
-                 for r in best)
-    if turned < min_rotation_deg:
+    if max(rotation_angle_deg(r.orientation @ first.orientation.T) for r in best) < min_rotation_deg:
         return 0
     kf = buffered[first.index]
     slam_map = SlamMap(camera)

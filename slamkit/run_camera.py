@@ -113,8 +113,8 @@ def use_radial(seg: Segment, max_radial: float) -> float | None:
 def final_global_ba(state: SlamState, seg: Segment, adjuster: BundleAdjuster, refine: bool, radial: bool,
                     max_radial: float) -> tuple[float, float]:
     """The last global BA of ``seg`` (normalization applied to the state's frame poses); with ``refine`` it
-    refines the focal length, with ``radial`` one radial coefficient too (a pinhole BA again when that
-    coefficient is beyond ``max_radial``). Returns (the focal length the map was built with, k1 or 0)."""
+    refines the focal length, with ``radial`` one radial coefficient (with the focal length or alone: a given
+    camera's, :func:`calibrate_radial`; a pinhole BA again when that coefficient is beyond ``max_radial``). Returns (the focal length the map was built with, k1 or 0)."""
     before = float(seg.slam_map.pycolmap_camera.params[0])
     if radial:
         seg.slam_map.use_radial_camera()
@@ -123,7 +123,7 @@ def final_global_ba(state: SlamState, seg: Segment, adjuster: BundleAdjuster, re
         state.apply_normalization(seg, float(bres.normalization.scale))
     k1 = use_radial(seg, max_radial) if radial else 0.0
     if k1 is None:  # an implausible k1: a pinhole BA instead
-        k1, bres = 0.0, adjuster.adjust_global(seg.slam_map, refine_focal=True)
+        k1, bres = 0.0, adjuster.adjust_global(seg.slam_map, refine_focal=refine)
         if bres.normalization is not None:
             state.apply_normalization(seg, float(bres.normalization.scale))
     return before, float(k1)
@@ -145,11 +145,7 @@ def calibrate_radial(state: SlamState, seg: Segment, adjuster: BundleAdjuster, c
     frames to track again) are undistorted with it. Returns ``camera`` with ``k1`` added to its own first
     coefficient (to first order the two add up), so that the next frames' keypoints are undistorted too; the
     camera unchanged when ``k1`` moves no pixel or is beyond ``self_calibration.max_radial``."""
-    seg.slam_map.use_radial_camera()
-    bres = adjuster.adjust_global(seg.slam_map, refine_radial=True)
-    if bres.normalization is not None:
-        state.apply_normalization(seg, float(bres.normalization.scale))
-    k1 = use_radial(seg, config.self_calibration.max_radial)
+    _, k1 = final_global_ba(state, seg, adjuster, False, True, config.self_calibration.max_radial)
     return replace(camera, dist=(camera.dist[0] + k1, *camera.dist[1:])) if k1 else camera
 
 

@@ -25,9 +25,9 @@ if TYPE_CHECKING:  # pragma: no cover
 
 
 ROTATION_ONLY = "rotation only: no 3-D structure"
+"""What the summary, the progress line and the step results say of a map made by rotation alone."""
 ROTATION, GENERAL = "rotation", "general"
 """``FrameRecord.motion_model``: posed by its rotation alone (position held), or in 6-DoF."""
-"""What the summary, the progress line and the step results say of a map made by rotation alone."""
 
 
 class FrameStatus(StrEnum):

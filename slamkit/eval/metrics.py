@@ -39,8 +39,8 @@ from .align import Alignment, estimate_alignment
 from .associate import associate
 from .pairing import load_pair
 
-__all__ = ["ROTATION_ONLY_ATE", "ErrorStats", "AteResult", "RpeResult", "ate", "ate_line", "rpe", "evaluate", "matched_warning", "MIN_MATCHED",
-           "MIN_MATCHED_FRACTION"]
+__all__ = ["ROTATION_ONLY_ATE", "ErrorStats", "AteResult", "RpeResult", "ate", "ate_line", "rpe", "evaluate",
+           "matched_warning", "MIN_MATCHED", "MIN_MATCHED_FRACTION"]
 
 #: fewer matched poses than this raise AssociationError (Umeyama needs 3)
 MIN_MATCHED = 3
