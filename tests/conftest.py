@@ -21,6 +21,20 @@ def shared_data(name: str) -> Path:
     return path
 
 
+def notebook_stream(nb, name: str | None = None) -> str:
+    """What the executed notebook ``nb`` printed (``name``: "stdout" or "stderr"; both when None), cell by cell.
+
+    Within a cell the stream outputs are concatenated as written: the kernel flushes its output buffer on a
+    timer, so one ``print`` can arrive as two outputs on a busy machine (joining them with a newline would break
+    the line a test looks for). Cells are separated by a newline."""
+    cells = []
+    for c in nb.cells:
+        if c.cell_type == "code":
+            cells.append("".join(o.get("text", "") for o in c.get("outputs", [])
+                                 if o.output_type == "stream" and (name is None or o.get("name") == name)))
+    return "\n".join(cells)
+
+
 def image_folder_run(tmp_path: Path, motion: str, frames: int, init_frames: int):
     """A rendered ``motion`` written as a plain image folder (``tmp_path/images``, PNG files) and run into
     ``tmp_path/run`` with its exact camera: (source, image folder, run folder, the run's outcome)."""

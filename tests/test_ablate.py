@@ -19,6 +19,7 @@ import pytest
 from slamkit import ConfigError
 from slamkit.ablate import Grid, parse_grid, plan, run_one, sweep
 from slamkit.cli import main
+from conftest import notebook_stream
 
 SOURCE = "synthetic:handheld?frames=24"
 BAD_SOURCE = "/nonexistent/sequence"
@@ -222,7 +223,7 @@ def test_ablation_notebook_runs_tiny(tmp_path):
                             resources={"metadata": {"path": str(tmp_path)}}).execute()
     outputs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not [o for o in outputs if o.output_type == "error"]
-    text = "\n".join(o.get("text", "") for o in outputs if o.output_type == "stream")
+    text = notebook_stream(nb, "stdout") + "\n" + notebook_stream(nb, "stderr")
     assert "1 runs:" in text and "1 of 1 runs ok" in text
     html = "\n".join(o.get("data", {}).get("text/html", "") for o in outputs)
     assert "ATE (cm)" in html and "<table" in html and "ATE sd" not in html  # in cm; one repeat: no spread column

@@ -20,7 +20,7 @@ nbclient = pytest.importorskip("nbclient")
 pytest.importorskip("ipykernel")
 psutil = pytest.importorskip("psutil")
 
-from conftest import meshcat_servers  # noqa: E402  (after the skips: psutil is a test extra)
+from conftest import meshcat_servers, notebook_stream  # noqa: E402  (after the skips: psutil is a test extra)
 
 NOTEBOOKS = sorted(p for p in (Path(__file__).resolve().parents[1] / "notebooks").glob("*.ipynb")
                    if p.stem != "03_ablation")  # executed with its own checks in tests/test_ablate.py
@@ -55,7 +55,7 @@ def test_every_notebook_says_what_it_teaches_and_how_long():
 def _outputs(nb) -> tuple[str, str]:
     """(stream text, text/plain results) of every code cell."""
     outs = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])]
-    stream = "\n".join(o.get("text", "") for o in outs if o.output_type == "stream")
+    stream = notebook_stream(nb, "stdout") + "\n" + notebook_stream(nb, "stderr")
     plain = "\n".join(o.get("data", {}).get("text/plain", "") for o in outs if "data" in o)
     return stream, plain
 
@@ -71,8 +71,7 @@ def test_notebook_runs(path: Path, tmp_path: Path):
     errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.output_type == "error"]
     assert not errors
     text, plain = _outputs(nb)
-    stderr = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
-                       if o.output_type == "stream" and o.get("name") == "stderr")
+    stderr = notebook_stream(nb, "stderr")
     assert "Warning" not in stderr, stderr[:1000]  # no stray warning in what a student reads
     # what a student reads: no raw HTML printed, no dataclass repr echoed, no empty keyframe reason
     for bad in ("<span", "<div", "ViewSettings(", "KEYFRAME ()", "matches=0 inliers=0"):
