@@ -6,7 +6,7 @@ Views draw from these alone (flow lines, inliers, reasons); none of them runs a 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 

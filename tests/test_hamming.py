@@ -102,7 +102,6 @@ def test_compiled_guided_match_equals_the_numpy_steps(radius, cfg):
 def test_compiled_vocabulary_descent_equals_the_numpy_levels():
     from slamkit.place_recognition.vocabulary import Vocabulary, VocabularyConfig
 
-    rng = np.random.default_rng(5)
     images = [_orb(s, 400) for s in range(6)]
     voc = Vocabulary.train(images, VocabularyConfig(branching=4, depth=3, iterations=3))
     queries = np.concatenate([_orb(11, 600), images[0][:50],

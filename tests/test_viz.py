@@ -25,7 +25,6 @@ import pytest
 pytest.importorskip("meshcat")
 pytest.importorskip("ipywidgets")
 psutil = pytest.importorskip("psutil")
-import pycolmap  # noqa: E402
 import umsgpack  # noqa: E402
 
 from slamkit.config import SlamConfig  # noqa: E402

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ConfigError, check_fields
+from ..errors import check_fields
 from ..geometry import flow_score, parallax_deg, rotation_angle_deg
 
 

@@ -33,7 +33,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import pycolmap
 
 from ..errors import ConfigError, check_fields
 from ..features import FrameFeatures, MatchingConfig, guided_match

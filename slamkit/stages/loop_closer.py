@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..errors import ConfigError, check_fields
+from ..errors import check_fields
 from ..loop_verification import (ConsistentGroup, LoopVerificationConfig, refine_sim3, update_consistent_groups,
                                  verify_loop_candidate)
 from ..map import keypoint_scales, rigid_from_matrix
