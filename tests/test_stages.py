@@ -256,10 +256,11 @@ def test_triangulation_error_within_tolerance(sideways, exact_map):
     assert rgb.any(axis=1).mean() > 0.9                     # points are coloured
 
 
-def test_tracker_recovers_pose_by_pnp(sideways, exact_map):
+@pytest.mark.parametrize("pose_optimizer", ["ceres", "orb"])
+def test_tracker_recovers_pose_by_pnp(sideways, exact_map, pose_optimizer):
     local_map = LocalMap.build(exact_map, 2, num_covisible=5)
     assert len(local_map) > 200
-    tracker = Tracker()
+    tracker = Tracker(TrackerConfig(pose_optimizer=pose_optimizer))
     for i, predicted in ((5, None), (14, cam_from_world(sideways, 12))):
         res = tracker.step(features_of(sideways, i), local_map, exact_map.pycolmap_camera, predicted)
         assert res.tracked, res.reason
@@ -355,6 +356,8 @@ def test_tracker_rematches_by_descriptor_when_the_motion_model_pose_is_weak():
     assert res.method == "motion" and "re-matched" not in res.reason and res.num_inliers == 500
     with pytest.raises(ConfigError, match="recheck_inlier_ratio"):
         TrackerConfig(recheck_inlier_ratio=2).validate()
+    with pytest.raises(ConfigError, match="tracker.pose_optimizer must be one of ceres, orb"):
+        SlamConfig().with_overrides(**{"tracker.pose_optimizer": "g2o"})
 
 
 def test_tracker_reports_lost_on_unrelated_image(exact_map):

@@ -25,9 +25,13 @@ import pycolmap
 from ..errors import ConfigError, check_fields, native_seed
 from ..features import FrameFeatures, MatchingConfig, guided_match, match_descriptors
 from ..local_map import POINT_DESCRIPTORS, LocalMap
-from ..map import matrix_from_rigid, rigid_from_matrix
+from ..map import keypoint_scales, matrix_from_rigid, rigid_from_matrix
+from ..pose_optimization import PoseOptimizationConfig, optimize_pose
 from ..results import TrackedMatches
 from ..state import FrameStatus
+
+POSE_OPTIMIZERS = ("ceres", "orb")
+"""Motion-only refiners of the local-map tracking (see ``TrackerConfig.pose_optimizer``)."""
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..state import Segment, SlamState
@@ -72,6 +76,11 @@ class TrackerConfig:
     or ends between two frames moves the projections beyond the search radius; RANSAC on the few matches left can
     then find a wrong pose that the small local-map radius confirms with a few inliers (the city block's
     corner: 156 inliers and a pose 0.6 m off, against 847 inliers and the right pose by descriptor)."""
+    pose_optimizer: str = "ceres"
+    """The motion-only refinement of the local-map tracking: "ceres" (``pycolmap.refine_absolute_pose`` on the
+    inliers, one robust loss, every observation weighted alike) or "orb" (:func:`~slamkit.pose_optimization.
+    optimize_pose` on every match, ORB-SLAM2's PoseOptimization: keypoint-level weights, 4 rounds re-classing
+    by chi2). The inliers after the refinement are ``max_error_px`` ones either way."""
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     random_seed: int = 0
     """RANSAC seed (same input and seed give the same trajectory)."""
@@ -83,6 +92,9 @@ class TrackerConfig:
             "prediction_min_inlier_ratio": ("(0, 100]", "> 1 turns the motion-model pose off"),
             "local_map_rounds": "[1, inf)", "local_keyframes": "[0, inf)", "recheck_inlier_ratio": "[0, 1]",
             "random_seed": "[0, inf)"})
+        if self.pose_optimizer not in POSE_OPTIMIZERS:
+            raise ConfigError(f"tracker.pose_optimizer must be one of {', '.join(POSE_OPTIMIZERS)} "
+                              f"(got {self.pose_optimizer!r})")
         if self.point_descriptor not in POINT_DESCRIPTORS:
             raise ConfigError(f"tracker.point_descriptor must be one of {', '.join(POINT_DESCRIPTORS)} "
                               f"(got {self.point_descriptor!r})")
@@ -165,6 +177,7 @@ class Tracker:
         ref.refine_extra_params = False
         ref.max_num_iterations = 20
         self._refinement = ref
+        self._pose_optimization = PoseOptimizationConfig()
 
     def step(self, frame: FrameFeatures, local_map: LocalMap, camera: pycolmap.Camera,
              predicted: np.ndarray | None = None, last_ids: np.ndarray | None = None) -> TrackingResult:
@@ -257,6 +270,7 @@ class Tracker:
         pairs, xy, inliers) of the best round."""
         c = self.config
         desc = frame.features.descriptors
+        sigma2 = keypoint_scales(frame.features) ** 2 if c.pose_optimizer == "orb" else None
         pose, best = initial, None
         for _ in range(c.local_map_rounds):
             idx, uv = local_map.project(pose, K, size)
@@ -267,9 +281,9 @@ class Tracker:
             inl = self._inliers(pose, xy, xyz, K)
             moved = 0.0
             if inl.sum() >= c.min_inliers:
-                ref = pycolmap.refine_absolute_pose(rigid_from_matrix(pose), xy, xyz, inl, camera, self._refinement)
-                if ref is not None:
-                    refined = matrix_from_rigid(ref["cam_from_world"])
+                refined = self._refine(pose, xy, xyz, inl, camera, K,
+                                       None if sigma2 is None else sigma2[pairs[:, 1]])
+                if refined is not None:
                     moved = float(np.median(np.linalg.norm(_project(refined, xyz[inl], K)[0]
                                                            - _project(pose, xyz[inl], K)[0], axis=1)))
                     pose = refined
@@ -280,6 +294,17 @@ class Tracker:
             if moved < 0.25 * c.refine_radius_px:  # the search around the refined pose would find the same
                 break
         return best
+
+    def _refine(self, pose: np.ndarray, xy: np.ndarray, xyz: np.ndarray, inl: np.ndarray, camera: pycolmap.Camera,
+                K: np.ndarray, sigma2: np.ndarray | None) -> np.ndarray | None:
+        """Motion-only refinement of ``pose`` ((4, 4)) by ``pose_optimizer``: Ceres on the inliers ``inl``, or
+        ORB-SLAM2's PoseOptimization on every match with the keypoint variances ``sigma2`` ((N,) px^2); None
+        when it fails."""
+        if self.config.pose_optimizer == "orb":
+            result = optimize_pose(pose, xy, xyz, sigma2, K, self._pose_optimization)
+            return result.cam_from_world if result.success else None
+        ref = pycolmap.refine_absolute_pose(rigid_from_matrix(pose), xy, xyz, inl, camera, self._refinement)
+        return None if ref is None else matrix_from_rigid(ref["cam_from_world"])
 
     def _from_prediction(self, predicted: np.ndarray, xy: np.ndarray, xyz: np.ndarray, camera: pycolmap.Camera,
                          K: np.ndarray) -> np.ndarray | None:
