@@ -158,3 +158,21 @@ def test_too_few_inliers_after_a_round_stops_the_rounds():
     result = optimize_pose(T0, xy, xyz, sigma2, K, PoseOptimizationConfig(min_inliers=10))
     assert not result.success and result.rounds < 4 and result.num_inliers < 10
     assert "inliers after round" in result.reason
+
+
+def test_threads_give_the_serial_results():
+    """The kernel releases the GIL (numba ``nogil``) and holds no shared state: frames optimized on two
+    threads at once give bit for bit the serial results."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from slamkit.pose_optimization import _pose_optimization_kernel
+
+    assert _pose_optimization_kernel.targetoptions.get("nogil") is True
+    frames = [_frame(seed, n=500, noise_px=1.0, outlier_ratio=0.2) for seed in range(40, 46)]
+    run = lambda f: optimize_pose(f[1], f[2], f[3], f[4], K)  # noqa: E731
+    serial = [run(f) for f in frames]
+    with ThreadPoolExecutor(2) as pool:
+        threaded = list(pool.map(run, frames))
+    for a, b in zip(serial, threaded):
+        np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
+        np.testing.assert_array_equal(a.inliers, b.inliers)
