@@ -15,7 +15,7 @@ bundle adjustment ORB-SLAM runs while tracking, run once more on the final map).
 are left out; correspondences whose reprojection error then exceeds ``max_error_px`` are dropped and the pose
 refined again. A frame keeps its tracked pose when fewer than ``min_inliers`` correspondences remain. Frames
 rotation held in place are re-centred afterwards on the refined poses (``rotation_phase.recentre_held_frames``).
-The correspondences are not saved in sessions: a resumed run refines the frames tracked after it resumed.
+Sessions save the correspondences (a resumed run refines every frame, as the uninterrupted run does).
 """
 
 from __future__ import annotations
@@ -83,6 +83,19 @@ class FinalPoseRefiner:
             self.tracked[frame_index] = TrackedCorrespondences(
                 segment, np.asarray(xy, np.float32).reshape(-1, 2), np.asarray(point3D_ids, np.int64).reshape(-1),
                 tuple(float(d) for d in distortion))
+
+    def state(self) -> tuple[list[dict], list[np.ndarray], list[np.ndarray]]:
+        """The correspondences kept so far, for sessions: per frame (ascending index) ``{"frame", "segment",
+        "distortion"}``, and the lists of their ``xy`` and ``point3D_ids`` arrays."""
+        items = sorted(self.tracked.items())
+        return ([{"frame": int(i), "segment": int(o.segment), "distortion": list(o.distortion)} for i, o in items],
+                [o.xy for _, o in items], [o.point3D_ids for _, o in items])
+
+    def restore(self, entries: list[dict], xy: list[np.ndarray], point3D_ids: list[np.ndarray]) -> None:
+        """Continue from :meth:`state` of another refiner (a resumed session)."""
+        self.tracked = {int(e["frame"]): TrackedCorrespondences(
+            int(e["segment"]), np.asarray(x, np.float32).reshape(-1, 2), np.asarray(ids, np.int64).reshape(-1),
+            tuple(float(d) for d in e["distortion"])) for e, x, ids in zip(entries, xy, point3D_ids)}
 
     def refine(self, state: "SlamState", distortion=()) -> list[int]:
         """Refine every observed frame that is still posed by PnP in the segment it was observed in (not a
