@@ -20,6 +20,7 @@ from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
 from .stages.local_mapper import LocalMappingConfig
 from .stages.motion_model_selection import MotionModelSelectionConfig
+from .stages.pose_refinement import PoseRefinementConfig
 from .stages.loop_closer import LoopClosingConfig
 from .stages.mapper import MapperConfig
 from .stages.self_calibration import SelfCalibrationConfig
@@ -81,6 +82,8 @@ class SlamConfig:
     ba: BundleAdjustmentConfig = field(default_factory=BundleAdjustmentConfig)
     motion_model: MotionModelSelectionConfig = field(default_factory=MotionModelSelectionConfig)
     """Rotation-only or general motion per frame (GRIC, issue 42): frames that only turn are posed by rotation."""
+    pose_refinement: PoseRefinementConfig = field(default_factory=PoseRefinementConfig)
+    """At the end of the run, the frames tracking posed by PnP refined on the final map (motion-only BA)."""
     loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
     """Loop detection and correction (``--set loop_closing.enabled=false`` turns it off; the ``seed`` preset
     has it off, as the source paper)."""
@@ -110,7 +113,7 @@ class SlamConfig:
         if self.camera and self.camera != "auto" and not is_camera_path(self.camera):
             parse_camera_values(self.camera, "camera")
         for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.local_mapping, self.ba,
-                      self.loop_closing, self.self_calibration, self.motion_model):
+                      self.loop_closing, self.self_calibration, self.motion_model, self.pose_refinement):
             stage.validate()
         if self.mapper.min_keyframe_points > self.initializer.min_points * 10:
             raise ConfigError("mapper.min_keyframe_points is larger than any initial map could provide "

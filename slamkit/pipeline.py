@@ -41,6 +41,7 @@ from .stages.local_mapper import LocalMapper
 from .stages.loop_closer import LoopCloser, LoopClosingResult, MergeCandidate
 from .stages.mapper import Mapper
 from .stages.motion import MotionModel
+from .stages.pose_refinement import FinalPoseRefiner
 from .stages.relocalizer import Relocalizer, RelocalizerConfig
 from .stages.self_calibration import SelfCalibrator
 from .stages.tracker import Tracker, TrackingResult, retrack_initial_frames
@@ -124,6 +125,7 @@ class Slam:
         self.tracker = Tracker(replace(c.tracker, random_seed=c.seed))
         self.motion_model = MotionModel()
         self.rotation_phase = RotationPhase(replace(c.motion_model, random_seed=c.seed), matcher)
+        self.pose_refiner = FinalPoseRefiner(c.pose_refinement)  # the tracked frames, on the final map
         self.relocalizer = Relocalizer(RelocalizerConfig(c.relocalization_candidates, c.tracker.local_keyframes,
                                                          c.tracker.point_descriptor))
         self.selector = KeyframeSelector(c.keyframes)
@@ -226,8 +228,7 @@ class Slam:
         st = self.state
         if self.calibrator is not None and self.calibrator.initial is None:
             self.calibrate()
-        t_start = time.perf_counter()
-        cpu_start = time.process_time()
+        t_start, cpu_start = time.perf_counter(), time.process_time()
         timings: dict[str, float] = {}
         loaded = self.loader.next(st.cursor)
         if isinstance(loaded[0], (ImageReadError, CalibrationError)):  # a bad frame is skipped with its reason
@@ -330,14 +331,14 @@ class Slam:
         timings["track"] = time.perf_counter() - t - timings.get("relocalize", 0.0)
         if not tr.tracked:
             return self._lost(record, tr, timings, ff)
-        st.consecutive_lost = 0
-        st.last_ids = tr.point3D_ids
+        st.consecutive_lost, st.last_ids = 0, tr.point3D_ids
         if len(seg.recent_points.ids):  # local mapping's recent-point test counts every tracked frame
             cam = seg.slam_map.pycolmap_camera
             visible, _ = st.local_map.project(tr.cam_from_world, cam.calibration_matrix(), (cam.width, cam.height))
             seg.recent_points.observe(st.local_map.ids[visible], tr.point3D_ids)
         reference = st.last_keyframe
         st.set_pose(record, reference, tr.cam_from_world, TRACKED, absolute=True)
+        self.pose_refiner.observe(record.index, seg.id, ff.keypoints[tr.point2D_idxs], tr.point3D_ids, self.camera.dist)
         if seg.slam_map.num_keyframes < RETRACK_BELOW_KEYFRAMES:  # young map: track again in finish()
             seg.initial_frames.append(ff)
         t = time.perf_counter()
@@ -368,8 +369,7 @@ class Slam:
         timings["rotation"] = timings.get("rotation", 0.0) + time.perf_counter() - t
         if turn.oriented:
             return self._result(record, TRACKED, turn.note + tr.reason, timings, **turn.fields)
-        record.status = LOST
-        st.last_ids = None
+        record.status, st.last_ids = LOST, None
         st.consecutive_lost += 1
         msg = tr.reason
         if st.consecutive_lost >= self.config.max_lost_frames or len(st.local_map) == 0:
@@ -508,10 +508,9 @@ class Slam:
             self.unfinished_session = None
         st.finished = True
         t = time.perf_counter()
-        main = st.main_segment
         for seg in st.segments:
             if self.config.ba.final_global and seg.slam_map.num_keyframes >= 3:
-                refine = seg is main and refines(self.calibrator, seg.slam_map, final=True)
+                refine = seg is st.main_segment and refines(self.calibrator, seg.slam_map, final=True)
                 sc = self.config.self_calibration
                 before, k1 = final_global_ba(st, seg, self.bundle_adjuster, refine, refine and sc.refine_radial,
                                              sc.max_radial)
@@ -519,6 +518,7 @@ class Slam:
                     self._refined(seg.slam_map, final=True, k1=k1, before=before)
         st.timings["ba"] = st.timings.get("ba", 0.0) + time.perf_counter() - t
         t2 = time.perf_counter()
+        self.pose_refiner.refine(st, self.camera.dist)  # motion-only BA of the frames PnP posed, on the final map
         for seg in st.segments:
             if seg.initial_frames and seg.slam_map.num_keyframes >= 3:  # against the map around its first keyframe
                 first = self._local_map(seg.slam_map, min(seg.slam_map.keyframes))

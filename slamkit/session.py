@@ -10,7 +10,7 @@ continues at the next frame exactly as the uninterrupted run would::
                             initializer's window, the local map and the bundle-adjustment counter
     state.npz               per-frame relative poses (N, 4, 4), the local map (point ids, positions,
                             descriptors), the last tracked point ids, the initializer's buffered features and
-                            window matches
+                            window matches, the PnP correspondences of the tracked frames (final pose refinement)
     segment_XX/model/       the segment's pycolmap Reconstruction (COLMAP binary, ``pycolmap.Reconstruction(d)``)
     segment_XX/arrays.npz   keyframe features (keypoints, descriptors, scores, sizes), colours, thumbnails,
                             relocalization signatures, the features of frames ``finish()`` tracks again, and the
@@ -137,6 +137,7 @@ def _write_state_files(slam: "Slam", folder: Path) -> None:
         "initializer": _window_to(slam.initializer.window, arrays),
         "self_calibration": slam.calibrator.state() if getattr(slam, "calibrator", None) is not None else None,
         "camera_dist": list(slam.camera.dist),  # a given camera's k1 estimated in the run (calibrate_radial)
+        "pose_refiner": _refiner_to(slam.pose_refiner, arrays),
     }
     np.savez(folder / "state.npz", **arrays)
     (folder / SESSION_FILE).write_text(json.dumps(meta, indent=1, default=_json_default))
@@ -170,6 +171,14 @@ def _state_to(state: SlamState, arrays: dict, folder: Path) -> dict:
         else:  # a new kind of field: give it a format here, it must not be lost silently
             raise TypeError(f"session: SlamState.{name} ({type(value).__name__}) has no session format")
     return meta
+
+
+def _refiner_to(refiner, arrays: dict) -> list[dict]:
+    """The PnP correspondences the final pose refinement will use (``stages.pose_refinement``)."""
+    entries, xy, ids = refiner.state()
+    _put_list(arrays, "refine_xy", xy)
+    _put_list(arrays, "refine_ids", ids)
+    return entries
 
 
 def _window_to(window: InitializerWindow, arrays: dict) -> dict:
@@ -368,6 +377,8 @@ def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
     elif slam.calibrator is None and meta.get("camera_dist") not in (None, list(slam.camera.dist)):
         slam._use_camera(dataclasses.replace(slam.camera, dist=tuple(float(v) for v in meta["camera_dist"])))
     slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
+    if meta.get("pose_refiner") is not None:  # sessions saved before it: the earlier frames keep tracked poses
+        slam.pose_refiner.restore(meta["pose_refiner"], _get_list(arrays, "refine_xy"), _get_list(arrays, "refine_ids"))
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(
         _frame_features_from(imeta["frames"], "init_frames", arrays),

@@ -143,6 +143,12 @@ def assert_same_state(a: Slam, b: Slam) -> None:
     for k, m in a.initializer._matches.items():
         _same_arrays(m, b.initializer._matches[k], f"window matches {k}")
     assert a.bundle_adjuster._keyframes_at_last_global == b.bundle_adjuster._keyframes_at_last_global
+    assert sorted(a.pose_refiner.tracked) == sorted(b.pose_refiner.tracked)
+    for i, oa in a.pose_refiner.tracked.items():
+        ob = b.pose_refiner.tracked[i]
+        assert (oa.segment, oa.distortion) == (ob.segment, ob.distortion), f"frame {i} correspondences"
+        _same_arrays(oa.xy, ob.xy, f"frame {i} correspondences")
+        _same_arrays(oa.point3D_ids, ob.point3D_ids, f"frame {i} correspondences")
 
 
 # ----------------------------------------------------------------------------------------------- resume
