@@ -105,7 +105,8 @@ def test_final_pose_refiner_skips_frames_of_another_segment_and_can_be_off():
     np.testing.assert_allclose(st.pose_of(5), TRACKED, atol=1e-12)
 
 
-@pytest.mark.parametrize("key, value", [("pose_refinement.min_inliers", 3), ("pose_refinement.max_error_px", 0.0)])
+@pytest.mark.parametrize("key, value", [("pose_refinement.min_inliers", 3), ("pose_refinement.max_error_px", 0.0),
+                                        ("pose_refinement.optimizer", "g2o")])
 def test_bad_pose_refinement_config(key, value):
     with pytest.raises(ConfigError, match=key.split(".")[1]):
         SlamConfig().with_overrides(**{key: value}).validate()
@@ -114,13 +115,15 @@ def test_bad_pose_refinement_config(key, value):
 @pytest.mark.slow
 def test_fast_turns_frames_posed_on_the_final_map():
     """syn-fast-yaw-20 (the suite's case, seed 0): ATE 12.5 mm when the frames keep their tracked poses
-    (keyframes 2.0 mm), under 8 mm once they are refined on the final map."""
+    (keyframes 2.0 mm); refined on the final map, 9.1 mm with the compiled PoseOptimization (the default),
+    6.9 mm with Ceres: both under the issue's 1 cm."""
     spec = "synthetic:fast-yaw?frames=100&yaw_rate=20&turn=150&hold=3&speed=0.005&noise=1&seed=0"
     src = open_source(spec)
     results = {}
-    for enabled in (False, True):
-        slam = Slam(src, SlamConfig().with_overrides(seed=0, **{"pose_refinement.enabled": enabled}))
+    for how in ("off", "orb", "ceres"):
+        over = {"pose_refinement.enabled": how != "off"} | ({"pose_refinement.optimizer": how} if how != "off" else {})
+        slam = Slam(src, SlamConfig().with_overrides(seed=0, **over))
         slam.run()
         assert slam.summary()["frames_posed"] == 100 and len(slam.segments) == 1
-        results[enabled] = ate(src.ground_truth(), slam.trajectory(), align="sim3").rmse
-    assert results[False] > 0.011 and results[True] < 0.008
+        results[how] = ate(src.ground_truth(), slam.trajectory(), align="sim3").rmse
+    assert results["off"] > 0.011 and results["orb"] < 0.010 and results["ceres"] < 0.008, results
