@@ -10,10 +10,11 @@ On ``syn-fast-yaw-20`` this was most of the ATE: 12.5 mm over all frames against
 
 So every frame tracking posed by PnP keeps its inlier correspondences (pixel, map point id: ~12 bytes each, not
 the descriptors), and at the end of the run, after the final global bundle adjustment, its pose is refined
-on the final positions of those points (``pycolmap.refine_absolute_pose``, robust Cauchy loss: the motion-only
-bundle adjustment ORB-SLAM runs while tracking, run once more on the final map). Points deleted or fused since
-are left out; correspondences whose reprojection error then exceeds ``max_error_px`` are dropped and the pose
-refined again. A frame keeps its tracked pose when fewer than ``min_inliers`` correspondences remain. Frames
+on the final positions of those points: the motion-only bundle adjustment ORB-SLAM runs while tracking, run
+once more on the final map (``optimizer``: its PoseOptimization compiled, :mod:`slamkit.pose_optimization`, or
+``pycolmap.refine_absolute_pose`` twice, the correspondences beyond ``max_error_px`` dropped between). Points
+deleted or fused since are left out. A frame keeps its tracked pose when fewer than ``min_inliers``
+correspondences remain. Frames
 rotation held in place are re-centred afterwards on the refined poses (``rotation_phase.recentre_held_frames``).
 Sessions save the correspondences (a resumed run refines every frame, as the uninterrupted run does).
 """
