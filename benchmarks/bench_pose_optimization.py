@@ -60,8 +60,12 @@ def _rotation(axis: np.ndarray, deg: float) -> np.ndarray:
 
 
 def synthetic_frame(rng: np.random.Generator, n: int, outlier_ratio: float, noise_px: float, perturb_deg: float,
-                    perturb_m: float):
-    """(true cam_from_world, initial pose, xy (N, 2), xyz (N, 3), sigma2 (N,), planted outliers (N,) bool)."""
+                    perturb_m: float, orb_levels: bool = True, exact_shift: bool = True):
+    """(true cam_from_world, initial pose, xy (N, 2), xyz (N, 3), sigma2 (N,), planted outliers (N,) bool):
+    points at depths 1-3 seen across the image, Gaussian noise of ``noise_px`` x 1.2^octave, outliers displaced
+    by 20-100 px in a random direction. Octaves as ORB finds them (fewer at coarser levels), or uniform over
+    0-7 with ``orb_levels`` False; the initial pose turned by ``perturb_deg`` and moved by ``perturb_m`` (or, with
+    ``exact_shift`` False, by ``perturb_m`` per axis, Gaussian). Also the frames of tests/test_pose_optimization.py."""
     uv = rng.uniform([0, 0], [WIDTH, HEIGHT], (n, 2))
     depth = rng.uniform(1, 3, n)
     xc = np.column_stack([(uv[:, 0] - K[0, 2]) / F * depth, (uv[:, 1] - K[1, 2]) / F * depth, depth])
@@ -69,7 +73,7 @@ def synthetic_frame(rng: np.random.Generator, n: int, outlier_ratio: float, nois
     T[:3, :3], T[:3, 3] = _rotation(rng.normal(size=3), 30), rng.normal(size=3) * 0.5
     xyz = (xc - T[:3, 3]) @ T[:3, :3]
     level_share = 1.2 ** -np.arange(8)
-    scale = 1.2 ** rng.choice(8, n, p=level_share / level_share.sum())
+    scale = 1.2 ** (rng.choice(8, n, p=level_share / level_share.sum()) if orb_levels else rng.integers(0, 8, n))
     xy = uv + rng.normal(0, noise_px, (n, 2)) * scale[:, None]
     planted = np.zeros(n, bool)
     planted[rng.choice(n, int(round(outlier_ratio * n)), replace=False)] = True
@@ -78,7 +82,7 @@ def synthetic_frame(rng: np.random.Generator, n: int, outlier_ratio: float, nois
     T0 = T.copy()
     T0[:3, :3] = _rotation(rng.normal(size=3), perturb_deg) @ T[:3, :3]
     direction = rng.normal(size=3)
-    T0[:3, 3] += direction / np.linalg.norm(direction) * perturb_m
+    T0[:3, 3] += (direction / np.linalg.norm(direction) if exact_shift else direction) * perturb_m
     return T, T0, xy, xyz, scale ** 2, planted
 
 

@@ -4,6 +4,9 @@ from a pose a few degrees and centimetres off."""
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -11,38 +14,16 @@ from slamkit.errors import ConfigError
 from slamkit.geometry import rotation_angle_deg
 from slamkit.pose_optimization import PoseOptimizationConfig, _normal_equations, _retract, _robust_cost, optimize_pose
 
-K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-WIDTH, HEIGHT = 640, 480
-
-
-def _rotation(axis: np.ndarray, deg: float) -> np.ndarray:
-    a = np.asarray(axis, float) / np.linalg.norm(axis)
-    W = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    th = np.radians(deg)
-    return np.eye(3) + np.sin(th) * W + (1 - np.cos(th)) * W @ W
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from bench_pose_optimization import K, synthetic_frame  # noqa: E402  (the benchmark's synthetic frames)
 
 
 def _frame(seed: int, n: int = 1000, noise_px: float = 0.5, outlier_ratio: float = 0.0):
     """(true cam_from_world, initial pose 3 deg / ~5 cm off, xy (N, 2), xyz (N, 3), sigma2 (N,), planted
-    outlier mask): points at depths 1-3 seen across the image, octaves 0-7, Gaussian noise of noise_px x
-    1.2^octave, outliers displaced by 20-100 px in a random direction."""
-    rng = np.random.default_rng(seed)
-    uv = rng.uniform([0, 0], [WIDTH, HEIGHT], (n, 2))
-    depth = rng.uniform(1, 3, n)
-    xc = np.column_stack([(uv[:, 0] - K[0, 2]) / K[0, 0] * depth, (uv[:, 1] - K[1, 2]) / K[1, 1] * depth, depth])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = _rotation(rng.normal(size=3), 30), rng.normal(size=3) * 0.5
-    xyz = (xc - T[:3, 3]) @ T[:3, :3]  # world = R^T (Xc - t)
-    scale = 1.2 ** rng.integers(0, 8, n)
-    xy = uv + rng.normal(0, noise_px, (n, 2)) * scale[:, None]
-    planted = np.zeros(n, bool)
-    planted[rng.choice(n, int(round(outlier_ratio * n)), replace=False)] = True
-    angle, shift = rng.uniform(0, 2 * np.pi, planted.sum()), rng.uniform(20, 100, planted.sum())
-    xy[planted] += np.column_stack([np.cos(angle), np.sin(angle)]) * shift[:, None]
-    T0 = T.copy()
-    T0[:3, :3] = _rotation(rng.normal(size=3), 3.0) @ T[:3, :3]
-    T0[:3, 3] += rng.normal(size=3) * 0.03
-    return T, T0, xy, xyz, scale ** 2, planted
+    outlier mask): points at depths 1-3 seen across the image, octaves 0-7 (uniform), Gaussian noise of
+    noise_px x 1.2^octave, outliers displaced by 20-100 px in a random direction (the benchmark's frames)."""
+    return synthetic_frame(np.random.default_rng(seed), n, outlier_ratio, noise_px, 3.0, 0.03, orb_levels=False,
+                           exact_shift=False)
 
 
 def _errors(estimate: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
