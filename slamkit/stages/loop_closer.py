@@ -33,7 +33,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import check_fields
-from ..loop_verification import (ConsistentGroup, LoopVerificationConfig, refine_sim3, update_consistent_groups,
+from ..loop_verification import (ConsistentGroup, LoopStatus, LoopVerification, LoopVerificationConfig,
+                                 match_map_points, update_consistent_groups, verify_loop_by_reprojection,
                                  verify_loop_candidate)
 from ..map import keypoint_scales, rigid_from_matrix
 from ..place_recognition import PlaceDatabase, default_vocabulary
@@ -103,12 +104,14 @@ class LoopClosingConfig:
     min_inliers: int = 30
     """Sim(3) inliers a loop needs (on top of ``verification``'s own thresholds)."""
     reprojection_check: bool = True
-    """A loop in the segment has its Sim(3) refined by reprojection in both keyframes (ORB-SLAM's OptimizeSim3,
-    :func:`~slamkit.loop_verification.refine_sim3`) and needs ``min_inliers`` matches that reproject through
-    it within the chi-square bound at the keypoint's scale (ORB-SLAM's inlier test); only those are fused and
-    the refined Sim(3) makes the loop edges. The 3D distance test alone accepts wrong matches among near points
-    and rejects right ones among far points, whose depth is uncertain by more than its threshold, and its
-    Sim(3) weighs both alike."""
+    """A loop in the segment is verified by reprojection in both keyframes (ORB-SLAM's Sim3Solver and
+    OptimizeSim3, :func:`~slamkit.loop_verification.verify_loop_by_reprojection`): RANSAC on minimal sets scored
+    by the matches that reproject within the chi-square bound at the keypoint's scale, the best Sim(3) refined
+    the same way, then ``min_inliers`` and ``verification``'s ratio and scale on those inliers; only they are
+    fused and the refined Sim(3) makes the loop edges. Off: COLMAP's LO-RANSAC on 3D distances
+    (:func:`~slamkit.loop_verification.verify_loop`), which accepts wrong matches among near points and refuses
+    right ones among far points, whose depth is uncertain by more than its threshold: on the city block it
+    refused the right loop for 130 keyframes (benchmarks/HISTORY.md, "the city block's third seed")."""
     max_postings: int = 200_000
     """Place-database entries one query visits at most (bounded query time as the map grows)."""
     global_ba: bool = True
@@ -341,19 +344,17 @@ class LoopCloser:
             keep = ~np.isin(c_ids, q_ids)
             c_ids, c_desc, c_obs = c_ids[keep], c_desc[keep], c_obs[keep]
         check = c.verification if cand_seg is seg else c.merge_verification
+        check = replace(check, min_inliers=max(check.min_inliers, c.min_inliers))
         q_xyz, c_xyz = seg.slam_map.points_xyz(q_ids), cand_seg.slam_map.points_xyz(c_ids)
-        verification, pairs = verify_loop_candidate(q_xyz, q_desc, c_xyz, c_desc, binary,
-                                                    replace(check, min_inliers=max(check.min_inliers, c.min_inliers)))
+        if c.reprojection_check and cand_seg is seg:
+            pairs = match_map_points(q_desc, c_desc, binary)
+            verification = _verify_by_reprojection(seg.slam_map, q_xyz[pairs[:, 0]], q_obs[pairs[:, 0]],
+                                                   c_xyz[pairs[:, 1]], c_obs[pairs[:, 1]], check)
+        else:
+            verification, pairs = verify_loop_candidate(q_xyz, q_desc, c_xyz, c_desc, binary, check)
         if not verification.accepted:
             return None
-        inliers = verification.inlier_mask
-        if c.reprojection_check and cand_seg is seg:
-            sim, inliers = _refine_by_reprojection(seg.slam_map, q_xyz[pairs[:, 0]], q_obs[pairs[:, 0]],
-                                                   c_xyz[pairs[:, 1]], c_obs[pairs[:, 1]], verification)
-            if inliers.sum() < max(check.min_inliers, c.min_inliers):
-                return None
-            verification = replace(verification, tgt_from_src=sim, scale=float(sim3_decompose(sim)[0]))
-        inl = pairs[inliers]
+        inl = pairs[verification.inlier_mask]
         return _Verified(cand_seg, cand_id, verification, np.stack([q_ids[inl[:, 0]], c_ids[inl[:, 1]]], axis=1))
 
     def _drift_ratio(self, state: "SlamState", seg: "Segment", image_id: int, found: _Verified) -> float:
@@ -435,12 +436,12 @@ def _keyframe_points(slam_map: "SlamMap", image_ids: list[int]) -> tuple[np.ndar
     return np.array(ids, np.int64), d, binary, np.array(obs, np.int64).reshape(-1, 2)
 
 
-def _refine_by_reprojection(slam_map: "SlamMap", q_xyz: np.ndarray, q_obs: np.ndarray, c_xyz: np.ndarray,
-                            c_obs: np.ndarray, verification) -> tuple[np.ndarray, np.ndarray]:
-    """The verified Sim(3) refined by reprojection (:func:`~slamkit.loop_verification.refine_sim3`, from its
-    3D-3D inliers) and the (N,) bool matched pairs that reproject through it in both keyframes. Pair i: the
-    query point at ``q_xyz[i]`` observed as ``q_obs[i]`` = (image id, keypoint) in the query keyframe, the
-    candidate point likewise in a keyframe of the candidate's group."""
+def _verify_by_reprojection(slam_map: "SlamMap", q_xyz: np.ndarray, q_obs: np.ndarray, c_xyz: np.ndarray,
+                            c_obs: np.ndarray, check) -> "LoopVerification":
+    """A loop's Sim(3) by RANSAC on reprojection in both keyframes and refined the same way
+    (:func:`~slamkit.loop_verification.verify_loop_by_reprojection`, ORB-SLAM's Sim3Solver and OptimizeSim3).
+    Pair i: the query point at ``q_xyz[i]`` observed as ``q_obs[i]`` = (image id, keypoint) in the query
+    keyframe, the candidate point likewise in a keyframe of the candidate's group."""
     def side(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         poses = {i: _matrix(slam_map.cam_from_world(i)) for i in np.unique(obs[:, 0]).tolist()}
         xy = np.zeros((len(obs), 2))
@@ -452,12 +453,11 @@ def _refine_by_reprojection(slam_map: "SlamMap", q_xyz: np.ndarray, q_obs: np.nd
             scales[sel] = keypoint_scales(kf.features)[obs[sel, 1]]
         return np.stack([poses[i] for i in obs[:, 0].tolist()]).reshape(-1, 4, 4), xy, scales
 
-    if len(q_obs) == 0:
-        return verification.tgt_from_src, np.zeros(0, bool)
+    if len(q_obs) < 3:
+        return LoopVerification(LoopStatus.TOO_FEW_MATCHES, len(q_obs))
     T_q, xy_q, s_q = side(q_obs)  # one keyframe: the query
     T_c, xy_c, s_c = side(c_obs)
-    return refine_sim3(verification.tgt_from_src, slam_map.camera.K, q_xyz, T_q[0], xy_q, s_q, c_xyz, T_c, xy_c, s_c,
-                       initial_inliers=verification.inlier_mask)
+    return verify_loop_by_reprojection(slam_map.camera.K, q_xyz, T_q[0], xy_q, s_q, c_xyz, T_c, xy_c, s_c, check)
 
 
 def _fuse(slam_map: "SlamMap", pairs: np.ndarray) -> int:
