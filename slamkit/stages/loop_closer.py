@@ -273,18 +273,20 @@ class LoopCloser:
         state.loop_groups, consistent = update_consistent_groups(state.loop_groups, groups, c.min_consistency)
         if not consistent:
             return LoopClosingResult(len(candidates), reason="no consistent candidate")
-        found, aliased = None, 0
+        found, aliased, refused = None, 0, []
         for cand in consistent[:c.max_verifications]:
-            found = self._verify(seg, image_id, cand)
+            found, why = self._verify(seg, image_id, cand)
             if found is not None and found.segment is seg and self._drift_ratio(state, seg, image_id, found) > \
                     c.max_correction:
-                found, aliased = None, aliased + 1
+                found, aliased, why = None, aliased + 1, "implausible: perceptual aliasing"
             if found is not None:
                 break
+            seg_id, cand_id = self._where[cand]
+            refused.append(f"frame {self._segment(seg_id).slam_map.keyframes[cand_id].frame_index}: {why}")
         n_verified = min(len(consistent), c.max_verifications)
         if found is None:
-            why = f" ({aliased} implausible: perceptual aliasing)" if aliased else ""
-            return LoopClosingResult(len(candidates), n_verified, reason="no candidate verified" + why)
+            return LoopClosingResult(len(candidates), n_verified,
+                                     reason=f"no candidate verified ({'; '.join(refused)})")
         state.loop_groups = ()
         v = found.verification
         if found.segment is not seg:
@@ -329,9 +331,9 @@ class LoopCloser:
         return self._segments[seg_id]
 
     # ----------------------------------------------------------------- verification
-    def _verify(self, seg: "Segment", image_id: int, cand_key: int) -> _Verified | None:
+    def _verify(self, seg: "Segment", image_id: int, cand_key: int) -> tuple[_Verified | None, str]:
         """Match keyframe ``image_id``'s map points to those of the candidate and its neighbours; a robust
-        Sim(3) with enough inliers makes a loop."""
+        Sim(3) with enough inliers makes a loop. Returns (the loop or None, why not)."""
         c = self.config
         cand_seg = self._segment(self._where[cand_key][0])
         cand_id = self._where[cand_key][1]
@@ -339,7 +341,7 @@ class LoopCloser:
         group = _around(cand_seg.slam_map, cand_id, c.candidate_neighbours)
         c_ids, c_desc, _, c_obs = _keyframe_points(cand_seg.slam_map, group)
         if len(q_ids) < c.min_inliers or len(c_ids) < c.min_inliers:
-            return None
+            return None, f"too few map points ({len(q_ids)} and {len(c_ids)})"
         if cand_seg is seg:  # points both keyframes already share are no evidence of a loop
             keep = ~np.isin(c_ids, q_ids)
             c_ids, c_desc, c_obs = c_ids[keep], c_desc[keep], c_obs[keep]
@@ -353,9 +355,9 @@ class LoopCloser:
         else:
             verification, pairs = verify_loop_candidate(q_xyz, q_desc, c_xyz, c_desc, binary, check)
         if not verification.accepted:
-            return None
+            return None, verification.reason
         inl = pairs[verification.inlier_mask]
-        return _Verified(cand_seg, cand_id, verification, np.stack([q_ids[inl[:, 0]], c_ids[inl[:, 1]]], axis=1))
+        return _Verified(cand_seg, cand_id, verification, np.stack([q_ids[inl[:, 0]], c_ids[inl[:, 1]]], axis=1)), ""
 
     def _drift_ratio(self, state: "SlamState", seg: "Segment", image_id: int, found: _Verified) -> float:
         """How far the verified Sim(3) would move the query keyframe, as a fraction of the path the camera
