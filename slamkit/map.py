@@ -19,6 +19,7 @@ import pycolmap
 
 from .camera import Intrinsics
 from .features import Features
+from .point_ids import PointIdCache, track_of
 
 CAMERA_ID = 1
 
@@ -128,7 +129,7 @@ class SlamMap:
         self._pending: dict[int, Keyframe] = {}
         self._observed: set[int] = set()
         self._next_image_id = 1
-        self._point3D_ids: dict[int, np.ndarray] = {}
+        self._point3D_ids = PointIdCache()
         self._covisible: dict[int, list[tuple[int, int]]] = {}
 
     def changed(self, image_ids=None) -> None:
@@ -136,11 +137,13 @@ class SlamMap:
         merges or removes observations (registration, triangulation, track maintenance, filtering).
         image_ids: only these images' observations changed (their point ids are forgotten, and every
         covisibility); None: any may have."""
-        if image_ids is None:
-            self._point3D_ids.clear()
-        else:
-            for i in image_ids:
-                self._point3D_ids.pop(int(i), None)
+        self._point3D_ids.forget(image_ids)
+        self._covisible.clear()
+
+    def _observed_as(self, image_ids, point2D_idxs, point3D_ids) -> None:
+        """Keypoints that now observe other points (-1: none) through a change made here: written into the
+        cached point ids (:class:`~slamkit.point_ids.PointIdCache`) instead of forgotten."""
+        self._point3D_ids.write(image_ids, point2D_idxs, point3D_ids)
         self._covisible.clear()
 
     # ----------------------------------------------------------------- keyframes
@@ -244,7 +247,7 @@ class SlamMap:
         self.reconstruction.frame(image_id).rig_from_world = copy.copy(cam_from_world)
         self.observations.register_frame(image_id)
         self.keyframes[image_id] = self._pending.pop(image_id)
-        self.changed()
+        self.changed([image_id])  # no observation changes; the covisibility now lists it
 
     def deregister(self, image_id: int) -> None:
         """Remove a keyframe's observations and registration (seed §3.5: too few map points)."""
@@ -272,16 +275,17 @@ class SlamMap:
     def add_observations(self, image_id: int, point2D_idxs: np.ndarray, point3D_ids: np.ndarray) -> int:
         """Add tracked 2D-3D observations to existing tracks; returns how many were added."""
         image = self.reconstruction.image(image_id)
-        added = 0
+        added_j, added_p = [], []
         for j, p in zip(np.asarray(point2D_idxs).tolist(), np.asarray(point3D_ids).tolist()):
             if not self.reconstruction.exists_point3D(p) or image.point2D(j).has_point3D():
                 continue
             if image.has_point3D(p):  # one observation per image and track
                 continue
             self.observations.add_observation(p, pycolmap.TrackElement(image_id, j))
-            added += 1
-        self.changed([image_id])
-        return added
+            added_j.append(j)
+            added_p.append(p)
+        self._observed_as([image_id] * len(added_j), added_j, added_p)
+        return len(added_j)
 
     def add_point(self, xyz: np.ndarray, observations, color: np.ndarray) -> int:
         """Create a 3D point at ``xyz`` (3,) observed by ``observations`` ((image id, keypoint index), ...) of
@@ -292,14 +296,29 @@ class SlamMap:
             track.add_element(int(image_id), int(j))
         pid = int(self.observations.add_point3D(np.asarray(xyz, np.float64), track, np.asarray(color, np.uint8)))
         self.triangulator.add_modified_point3D(pid)
-        self.changed([i for i, _ in observations])
+        self._observed_as([i for i, _ in observations], [j for _, j in observations], pid)
         return pid
 
     def delete_point(self, point3D_id: int) -> None:
         """Remove a 3D point and its observations."""
-        images = [el.image_id for el in self.reconstruction.point3D(int(point3D_id)).track.elements]
+        images, idxs = track_of(self.reconstruction, point3D_id)
         self.observations.delete_point3D(int(point3D_id))
-        self.changed(images)
+        self._observed_as(images, idxs, -1)
+
+    def delete_observation(self, image_id: int, point2D_idx: int) -> int:
+        """Remove one observation (``ObservationManager.delete_observation``: a point left with fewer than two
+        observations is deleted with them); returns its point id, -1 (nothing done) when the keypoint has none."""
+        rec = self.reconstruction
+        point2D = rec.image(image_id).point2D(point2D_idx)
+        if not point2D.has_point3D():
+            return -1
+        pid = int(point2D.point3D_id)
+        images, idxs = track_of(rec, pid)
+        self.observations.delete_observation(image_id, point2D_idx)
+        if rec.exists_point3D(pid):  # else the point went with it, and all its observations
+            images, idxs = [image_id], [point2D_idx]
+        self._observed_as(images, idxs, -1)
+        return pid
 
     def merge_points(self, point3D_id1: int, point3D_id2: int) -> int:
         """Fuse two 3D points that are the same scene point into one (``ObservationManager.merge_points3D``:
@@ -308,13 +327,14 @@ class SlamMap:
         rec = self.reconstruction
         if point3D_id1 == point3D_id2 or not (rec.exists_point3D(point3D_id1) and rec.exists_point3D(point3D_id2)):
             return -1
-        images1 = {el.image_id for el in rec.point3D(point3D_id1).track.elements}
-        images2 = [el.image_id for el in rec.point3D(point3D_id2).track.elements]
-        if any(i in images1 for i in images2):
+        track1, track2 = rec.point3D(point3D_id1).track.elements, rec.point3D(point3D_id2).track.elements
+        images1 = {el.image_id for el in track1}
+        if any(el.image_id in images1 for el in track2):
             return -1
+        images, idxs = ([el.image_id for el in track1 + track2], [el.point2D_idx for el in track1 + track2])
         pid = int(self.observations.merge_points3D(int(point3D_id1), int(point3D_id2)))
         self.triangulator.add_modified_point3D(pid)
-        self.changed([*images1, *images2])
+        self._observed_as(images, idxs, pid)  # every observation of either now observes the merged point
         return pid
 
     def triangulate(self, image_id: int) -> int:
@@ -342,21 +362,14 @@ class SlamMap:
     def point3D_ids(self, image_id: int) -> np.ndarray:
         """(N,) int64 3D point id of each keypoint of the keyframe, -1 where none (read-only, cached
         until :meth:`changed`)."""
-        out = self._point3D_ids.get(image_id)
-        if out is None:
-            image = self.reconstruction.image(image_id)
-            out = np.full(image.num_points2D(), -1, np.int64)
-            points2D = image.get_observation_points2D()
-            if points2D:
-                out[image.get_observation_point2D_idxs()] = [p.point3D_id for p in points2D]
-            out.flags.writeable = False
-            self._point3D_ids[image_id] = out
-        return out
+        return self._point3D_ids.get(self.reconstruction, image_id)
 
     def points_xyz(self, point3D_ids) -> np.ndarray:
         """(M, 3) positions of the given points."""
-        pts = self.reconstruction.points3D
-        return np.array([pts[int(p)].xyz for p in point3D_ids], dtype=np.float64).reshape(-1, 3)
+        point3D = self.reconstruction.point3D  # (one concatenation: a third faster than an array of rows)
+        ids = point3D_ids.tolist() if isinstance(point3D_ids, np.ndarray) else [int(p) for p in point3D_ids]
+        xyz = [point3D(p).xyz for p in ids]
+        return np.concatenate(xyz).reshape(-1, 3) if xyz else np.empty((0, 3))
 
     def num_points_observed(self, image_id: int, min_observers: int = 1) -> int:
         """Map points of the keyframe that at least ``min_observers`` keyframes observe (ORB-SLAM's

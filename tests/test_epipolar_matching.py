@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from slamkit.config import SlamConfig
 from slamkit.features import MatchingConfig, match_descriptors
+from slamkit.features import epipolar
 from slamkit.features.epipolar import epipolar_candidates, epipolar_match
 from slamkit.pipeline import Slam
 from slamkit.sources import open_source
@@ -58,6 +59,64 @@ def test_pencil_search_finds_exactly_the_pairs_in_the_epipolar_band(rotvec, t):
     assert got == brute_force_candidates(x1, x2, T, K, 4.0)
 
 
+def numpy_candidates(x1, x2, cam2_from_cam1, K, band_px):
+    """epipolar_candidates as numpy code (before the compiled kernels): binary searches for each line's
+    window, every window pair gathered into (K,) arrays, then the band and cheirality tests on them."""
+    R, t = cam2_from_cam1[:3, :3], cam2_from_cam1[:3, 3]
+    Kinv = np.linalg.inv(K)
+    y1 = epipolar._apply(Kinv, np.c_[x1, np.ones(len(x1))])
+    y2 = epipolar._apply(Kinv, np.c_[x2, np.ones(len(x2))])
+    band = band_px / K[0, 0]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    lines = epipolar._apply(tx @ R, y1)
+    t1, t2, amp, period, base = epipolar._line_parameters(y1, y2, lines, R, t, band)
+    ring = np.floor(4 * np.log2(np.maximum(amp / base, 1.0))).astype(np.int64) + (amp >= base)
+    ii, jj = [], []
+    for r in np.unique(ring):
+        members = np.flatnonzero(ring == r)
+        half = float(np.arcsin(min(1.0, band / base * 2.0 ** (-0.25 * float(r - 1))))) if r > 0 else np.pi
+        if half >= np.pi / 2 - 1e-9:
+            ii.append(np.repeat(np.arange(len(x1)), len(members)))
+            jj.append(np.tile(members, len(x1)))
+            continue
+        o = np.argsort(t2[members], kind="stable")
+        ts = np.concatenate([t2[members][o] - period, t2[members][o], t2[members][o] + period])
+        js = np.tile(members[o], 3)
+        lo, hi = np.searchsorted(ts, t1 - half, "left"), np.searchsorted(ts, t1 + half, "right")
+        ii.append(np.repeat(np.arange(len(t1)), hi - lo))
+        jj.append(np.concatenate([js[a:b] for a, b in zip(lo, hi)]))
+    i, j = np.concatenate(ii), np.concatenate(jj)
+    L, Y = lines.T.copy(), y2.T.copy()
+    dist = np.abs(L[0][i] * Y[0][j] + L[1][i] * Y[1][j] + L[2][i] * Y[2][j])
+    ok = dist < band * np.hypot(L[0], L[1])[i]
+    i, j = i[ok], j[ok]
+    A = epipolar._apply(R, y1).T.copy()
+    aa, bb = (A * A).sum(0)[i], (Y * Y).sum(0)[j]
+    at, bt = (A * t[:, None]).sum(0)[i], (Y * t[:, None]).sum(0)[j]
+    ab = A[0][i] * Y[0][j] + A[1][i] * Y[1][j] + A[2][i] * Y[2][j]
+    d1, d2 = ab * bt - at * bb, aa * bt - ab * at
+    ok = ((d1 > 0) & (d2 > 0)) | (ab > epipolar._COS_PARALLEL * np.sqrt(aa * bb))
+    ok &= aa * bb - ab * ab > 0
+    return i[ok], j[ok]
+
+
+@pytest.mark.parametrize("rotvec, t", [
+    ((0, 0.05, 0), (0.02, 0, -1.0)), ((0, 0.03, 0), (1.0, 0.1, 0.2)), ((0, 0, 0), (0, 0, 1.0)),
+    ((0.1, 0.1, 0.02), (0.3, 0.3, 0.5)), ((0, 0.02, 0), (1.0, 0, 0)), ((0.01, -0.02, 0), (0.001, 0, 0.2)),
+])
+def test_compiled_kernels_return_the_numpy_pairs_in_their_order(rotvec, t):
+    rng = np.random.default_rng(3)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = Rotation.from_rotvec(rotvec).as_matrix(), t
+    x1 = rng.uniform([-5, -5], [1230, 375], (900, 2))
+    x2 = rng.uniform([-5, -5], [1230, 375], (1100, 2))
+    x2[:5] = K[:2, 2] + 0.5 * rng.normal(size=(5, 2))
+    i, j = epipolar_candidates(x1, x2, T, K, 4.0)
+    ri, rj = numpy_candidates(x1, x2, T, K, 4.0)
+    assert len(i) > 1000
+    assert np.array_equal(i, ri) and np.array_equal(j, rj)
+
+
 def test_no_baseline_no_candidates():
     x = np.random.default_rng(0).uniform(0, 300, (50, 2))
     assert len(epipolar_candidates(x, x, np.eye(4), K, 4.0)[0]) == 0
@@ -97,3 +156,12 @@ def test_no_descriptor_close_enough_no_matches():
     T = np.eye(4)
     T[:3, 3] = (0.1, 0, -1.0)
     assert epipolar_match(x, d1, x, d2, True, T, K, 4.0).shape == (0, 2)
+
+
+def test_window_sweep_equals_binary_searches_ties_included():
+    rng = np.random.default_rng(4)
+    t1 = rng.integers(-6, 7, 500).astype(np.float64)  # integer values: queries equal to window ends
+    ts = np.sort(rng.integers(-9, 10, 200).astype(np.float64))
+    lo, hi = epipolar._window_bounds(t1, np.argsort(t1, kind="stable"), ts, 1.0)
+    assert np.array_equal(lo, np.searchsorted(ts, t1 - 1.0, "left"))
+    assert np.array_equal(hi, np.searchsorted(ts, t1 + 1.0, "right"))

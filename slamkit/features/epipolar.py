@@ -20,6 +20,7 @@ window), checked exactly afterwards.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .base import MatchingConfig, _max_distance, _ratio_test, descriptor_distance
 
@@ -36,22 +37,74 @@ def _pencil_basis(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(e, u)
 
 
-def _window_pairs(t1: np.ndarray, t2: np.ndarray, j2: np.ndarray, half: float, period: float
-                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Every (i, j) with ``t2[j]`` within ``half`` of ``t1[i]`` modulo ``period``; j2: the indices the rows
-    of t2 stand for. Returns ((K,) i, (K,) j2[j])."""
-    if len(t2) == 0 or len(t1) == 0:
-        return np.empty(0, np.int64), np.empty(0, np.int64)
+def _window(t1: np.ndarray, order1: np.ndarray, t2: np.ndarray, j2: np.ndarray, half: float, period: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The keypoints ``j2`` whose ``t2`` lies within ``half`` of each ``t1[i]`` modulo ``period``, as windows
+    (lo (N1,), hi (N1,), js (K,)): the candidates of line i are ``js[lo[i]:hi[i]]``, in ``t2`` order (ties in
+    ``j2`` order). ``order1``: ``t1``'s ascending order. ``half`` >= pi / 2: every keypoint for every line, in
+    ``j2`` order."""
+    if half >= np.pi / 2 - 1e-9:
+        return np.zeros(len(t1), np.int64), np.full(len(t1), len(j2), np.int64), j2
     o = np.argsort(t2, kind="stable")
     ts = np.concatenate([t2[o] - period, t2[o], t2[o] + period])  # wrap-around
-    js = np.tile(j2[o], 3)
-    lo = np.searchsorted(ts, t1 - half, "left")
-    hi = np.searchsorted(ts, t1 + half, "right")
-    counts = hi - lo
-    total = int(counts.sum())
-    i = np.repeat(np.arange(len(t1)), counts)
-    k = np.repeat(lo - (np.cumsum(counts) - counts), counts) + np.arange(total)
-    return i, js[k]
+    if np.isnan(ts).any() or np.isnan(t1).any():  # (not from finite keypoints) numpy's NaN order
+        lo, hi = np.searchsorted(ts, t1 - half, "left"), np.searchsorted(ts, t1 + half, "right")
+    else:
+        lo, hi = _window_bounds(t1, order1, ts, half)
+    return lo, hi, np.tile(j2[o], 3)
+
+
+@njit(cache=True, nogil=True)
+def _window_bounds(t1, order1, ts, half):
+    """``numpy.searchsorted(ts, t1 - half, "left")`` and ``(ts, t1 + half, "right")`` for sorted ``ts`` and
+    ``t1`` without NaN, in one sweep over ``t1`` in its ascending ``order1`` (the queries ascend too): O(N + M)
+    instead of N binary searches."""
+    n, m = t1.shape[0], ts.shape[0]
+    lo = np.empty(n, np.int64)
+    hi = np.empty(n, np.int64)
+    a = b = 0
+    for k in range(n):
+        i = order1[k]
+        q = t1[i] - half
+        while a < m and ts[a] < q:
+            a += 1
+        lo[i] = a
+        q = t1[i] + half
+        while b < m and ts[b] <= q:
+            b += 1
+        hi[i] = b
+    return lo, hi
+
+
+@njit(cache=True, nogil=True)
+def _band_kernel(lo, hi, js, L, Y, A, near, aa, bb, at, bt, cos_parallel):
+    """The exact tests of :func:`epipolar_candidates` over the windows of :func:`_window`, pair by pair with
+    the same float operations in the same order as the numpy expressions they replace (no (K,) temporaries):
+    returns ((M,) i, (M,) j) of the pairs kept, in window order."""
+    total = 0
+    for i in range(lo.shape[0]):
+        total += hi[i] - lo[i]
+    out_i = np.empty(total, np.int64)
+    out_j = np.empty(total, np.int64)
+    m = 0
+    for i in range(lo.shape[0]):
+        l0, l1, l2, a0, a1, a2 = L[0, i], L[1, i], L[2, i], A[0, i], A[1, i], A[2, i]
+        for k in range(lo[i], hi[i]):
+            j = js[k]
+            y0, y1, y2 = Y[0, j], Y[1, j], Y[2, j]
+            if not abs(l0 * y0 + l1 * y1 + l2 * y2) < near[i]:  # the band
+                continue
+            ab = a0 * y0 + a1 * y1 + a2 * y2
+            d1 = ab * bt[j] - at[i] * bb[j]
+            d2 = aa[i] * bt[j] - ab * at[i]
+            if not ((d1 > 0 and d2 > 0) or ab > cos_parallel * np.sqrt(aa[i] * bb[j])):  # cheirality
+                continue
+            if not aa[i] * bb[j] - ab * ab > 0:
+                continue
+            out_i[m] = i
+            out_j[m] = j
+            m += 1
+    return out_i[:m], out_j[:m]
 
 
 def _line_parameters(y1: np.ndarray, y2: np.ndarray, lines: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -102,32 +155,23 @@ def epipolar_candidates(x1: np.ndarray, x2: np.ndarray, cam2_from_cam1: np.ndarr
     # rings of keypoints by amp, x 2^(1/4) outwards from `base`: each ring's window is asin(band / its inner
     # amp); ring 0 (within `base` of the epipole) holds candidates of every line
     ring = np.floor(4 * np.log2(np.maximum(amp / base, 1.0))).astype(np.int64) + (amp >= base)
+    # exact band, then cheirality: d2 y2 = d1 R y1 + t with d1, d2 > 0 (least squares, Cramer's rule on
+    # [aa, -ab; -ab, bb] [d1, d2] = [-at, bt], both sides times det >= 0), pair by pair in _band_kernel
+    L, Y = lines.T.copy(), y2.T.copy()
+    A = _apply(R, y1).T.copy()
+    near = band * np.hypot(L[0], L[1])
+    aa, bb = (A * A).sum(0), (Y * Y).sum(0)
+    at, bt = (A * t[:, None]).sum(0), (Y * t[:, None]).sum(0)
+    order1 = np.argsort(t1, kind="stable")
     ii, jj = [], []
     for r in np.unique(ring):
         members = np.flatnonzero(ring == r)
         half = float(np.arcsin(min(1.0, band / base * 2.0 ** (-0.25 * float(r - 1))))) if r > 0 else np.pi
-        if half >= np.pi / 2 - 1e-9:
-            ii.append(np.repeat(np.arange(len(x1)), len(members)))
-            jj.append(np.tile(members, len(x1)))
-        else:
-            pi_, pj = _window_pairs(t1, t2[members], members, half, period)
-            ii.append(pi_)
-            jj.append(pj)
-    i, j = np.concatenate(ii), np.concatenate(jj)
-    # exact band, then cheirality: d2 y2 = d1 R y1 + t with d1, d2 > 0 (least squares, Cramer's rule on
-    # [aa, -ab; -ab, bb] [d1, d2] = [-at, bt], both sides times det >= 0); 1-D gathers per coordinate
-    L, Y = lines.T.copy(), y2.T.copy()
-    dist = np.abs(L[0][i] * Y[0][j] + L[1][i] * Y[1][j] + L[2][i] * Y[2][j])
-    ok = dist < band * np.hypot(L[0], L[1])[i]
-    i, j = i[ok], j[ok]
-    A = _apply(R, y1).T.copy()
-    aa, bb = (A * A).sum(0)[i], (Y * Y).sum(0)[j]
-    at, bt = (A * t[:, None]).sum(0)[i], (Y * t[:, None]).sum(0)[j]
-    ab = A[0][i] * Y[0][j] + A[1][i] * Y[1][j] + A[2][i] * Y[2][j]
-    d1, d2 = ab * bt - at * bb, aa * bt - ab * at
-    ok = ((d1 > 0) & (d2 > 0)) | (ab > _COS_PARALLEL * np.sqrt(aa * bb))
-    ok &= aa * bb - ab * ab > 0
-    return i[ok].astype(np.int64), j[ok].astype(np.int64)
+        lo, hi, js = _window(t1, order1, t2[members], members, half, period)
+        i, j = _band_kernel(lo, hi, js, L, Y, A, near, aa, bb, at, bt, _COS_PARALLEL)
+        ii.append(i)
+        jj.append(j)
+    return np.concatenate(ii), np.concatenate(jj)
 
 
 def _apply(M: np.ndarray, X: np.ndarray) -> np.ndarray:

@@ -288,6 +288,7 @@ class BundleAdjuster:
         completed = tri.complete_tracks(opts, modified) if modified else 0
         merged = tri.merge_tracks(opts, modified) if modified else 0
         tri.clear_modified_points3D()
+        slam_map.changed()  # completion and merging changed observations behind the map's back
         obs = slam_map.observations
         max_error, chi2 = self.config.max_reproj_error_px, self.config.outlier_chi2
         removed = 0
@@ -310,35 +311,33 @@ def remove_outlier_observations(slam_map: SlamMap, image_ids, chi2: float, scale
     times its keypoint's scale squared (``scaled``; else ``chi2`` flat), or that lies behind its camera
     (ORB-SLAM's outlier classification after BA). A point left with fewer than two observations is deleted
     (COLMAP's ``ObservationManager.delete_observation``). Returns the observations removed; ``removed``, when
-    given, gets (image id, point2D index, point3D id) of each."""
-    rec, obs = slam_map.reconstruction, slam_map.observations
-    slam_map.changed()  # track maintenance may have merged points since the ids were cached
+    given, gets (image id, point2D index, point3D id) of each. The map's cached point ids must be current
+    (:meth:`SlamMap.changed` after changes made outside it)."""
     K = slam_map.pycolmap_camera.calibration_matrix()
     removed_list, removed = removed, 0
-    for image_id in sorted(int(i) for i in image_ids):
-        if image_id not in slam_map.keyframes:
-            continue
-        ids = slam_map.point3D_ids(image_id)
+    image_ids = [i for i in sorted(int(i) for i in image_ids) if i in slam_map.keyframes]
+    pids = np.unique(np.concatenate([slam_map.point3D_ids(i) for i in image_ids] or [np.empty(0, np.int64)]))
+    pids = pids[pids >= 0]
+    xyz = slam_map.points_xyz(pids)  # each point read once: removing observations moves none
+    for image_id in image_ids:
+        ids = slam_map.point3D_ids(image_id)  # without the points removed with earlier images' observations
         idx = np.flatnonzero(ids >= 0)
         if not len(idx):
             continue
         kf = slam_map.keyframes[image_id]
         T = slam_map.cam_from_world(image_id).matrix()
-        X = slam_map.points_xyz(ids[idx]) @ T[:, :3].T + T[:, 3]
+        X = xyz[np.searchsorted(pids, ids[idx])] @ T[:, :3].T + T[:, 3]
         z = X[:, 2]
         uv = (X @ K.T)[:, :2] / np.where(np.abs(z) > 1e-12, z, 1e-12)[:, None]
         err2 = ((uv - kf.keypoints[idx]) ** 2).sum(axis=1)
         bound = chi2 * (keypoint_scales(kf.features)[idx] ** 2 if scaled else 1.0)
         bad = idx[(err2 > bound) | (z <= 0)]
         for p2 in bad.tolist():
-            point2D = rec.image(image_id).point2D(p2)
-            if point2D.has_point3D():  # an earlier deletion may have taken its point
+            point3D_id = slam_map.delete_observation(image_id, p2)  # -1: an earlier deletion took its point
+            if point3D_id >= 0:
                 if removed_list is not None:
-                    removed_list.append((image_id, p2, int(point2D.point3D_id)))
-                obs.delete_observation(image_id, p2)
+                    removed_list.append((image_id, p2, point3D_id))
                 removed += 1
-        if len(bad):  # a deleted point leaves other keyframes too
-            slam_map.changed()
     return removed
 
 
