@@ -19,6 +19,7 @@ from typing import Collection, Mapping, Sequence
 
 import numpy as np
 import pycolmap
+from numba import njit
 
 from .errors import ConfigError, native_seed
 from .features import MatchingConfig, match_descriptors
@@ -291,26 +292,45 @@ def _sim3_from_triplets(src: np.ndarray, tgt: np.ndarray) -> tuple[np.ndarray, n
     return s, R, t, ok
 
 
+@njit(cache=True, nogil=True)
 def _batch_inliers(s: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.ndarray, src_points: np.ndarray,
                    src_cam_from_world: np.ndarray, src_xy: np.ndarray, src_bound: np.ndarray,
                    tgt_points: np.ndarray, tgt_cam_from_world: np.ndarray, tgt_xy: np.ndarray,
                    tgt_bound: np.ndarray) -> np.ndarray:
-    """(T, N) bool: :func:`reprojection_inliers` of T similarities at once (``*_bound``: chi2 x scale^2)."""
-    Tq = src_cam_from_world
-    q_world = np.einsum("tji,tnj->tni", R, tgt_points[None] - t[:, None]) / s[:, None, None]  # S^-1 tgt
-    Xq = q_world @ Tq[:3, :3].T + Tq[:3, 3]
-    c_world = s[:, None, None] * np.einsum("tij,nj->tni", R, src_points) + t[:, None]
-    Xc = np.einsum("nij,tnj->tni", tgt_cam_from_world[:, :3, :3], c_world) + tgt_cam_from_world[:, :3, 3]
-    f, c = np.array([K[0, 0], K[1, 1]]), np.array([K[0, 2], K[1, 2]])
-
-    def err(X: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        z = X[..., 2]
-        uv = X[..., :2] / np.where(z > 0, z, 1.0)[..., None] * f + c
-        return ((uv - xy) ** 2).sum(axis=-1), z
-
-    e_q, z_q = err(Xq, src_xy)
-    e_c, z_c = err(Xc, tgt_xy)
-    return (z_q > 0) & (z_c > 0) & (e_q <= src_bound) & (e_c <= tgt_bound)
+    """(T, N) bool: :func:`reprojection_inliers` of T similarities at once (``*_bound``: chi2 x scale^2), compiled:
+    a numpy version spent 19 ms per 100 hypotheses of 500 matches in ``einsum``."""
+    T, N = len(s), len(src_points)
+    out = np.zeros((T, N), np.bool_)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    Q = src_cam_from_world
+    for h in range(T):
+        Rh, th, sh = R[h], t[h], s[h]
+        for i in range(N):
+            # the candidate's point into the query's world (S^-1) and the query keyframe
+            d0, d1, d2 = tgt_points[i, 0] - th[0], tgt_points[i, 1] - th[1], tgt_points[i, 2] - th[2]
+            w0 = (Rh[0, 0] * d0 + Rh[1, 0] * d1 + Rh[2, 0] * d2) / sh
+            w1 = (Rh[0, 1] * d0 + Rh[1, 1] * d1 + Rh[2, 1] * d2) / sh
+            w2 = (Rh[0, 2] * d0 + Rh[1, 2] * d1 + Rh[2, 2] * d2) / sh
+            z = Q[2, 0] * w0 + Q[2, 1] * w1 + Q[2, 2] * w2 + Q[2, 3]
+            if z <= 0:
+                continue
+            u = fx * (Q[0, 0] * w0 + Q[0, 1] * w1 + Q[0, 2] * w2 + Q[0, 3]) / z + cx - src_xy[i, 0]
+            v = fy * (Q[1, 0] * w0 + Q[1, 1] * w1 + Q[1, 2] * w2 + Q[1, 3]) / z + cy - src_xy[i, 1]
+            if u * u + v * v > src_bound[i]:
+                continue
+            # the query's point into the candidate's world (S) and the keyframe observing its match
+            p0, p1, p2 = src_points[i, 0], src_points[i, 1], src_points[i, 2]
+            c0 = sh * (Rh[0, 0] * p0 + Rh[0, 1] * p1 + Rh[0, 2] * p2) + th[0]
+            c1 = sh * (Rh[1, 0] * p0 + Rh[1, 1] * p1 + Rh[1, 2] * p2) + th[1]
+            c2 = sh * (Rh[2, 0] * p0 + Rh[2, 1] * p1 + Rh[2, 2] * p2) + th[2]
+            C = tgt_cam_from_world[i]
+            z = C[2, 0] * c0 + C[2, 1] * c1 + C[2, 2] * c2 + C[2, 3]
+            if z <= 0:
+                continue
+            u = fx * (C[0, 0] * c0 + C[0, 1] * c1 + C[0, 2] * c2 + C[0, 3]) / z + cx - tgt_xy[i, 0]
+            v = fy * (C[1, 0] * c0 + C[1, 1] * c1 + C[1, 2] * c2 + C[1, 3]) / z + cy - tgt_xy[i, 1]
+            out[h, i] = u * u + v * v <= tgt_bound[i]
+    return out
 
 
 def verify_loop_by_reprojection(K: np.ndarray, src_points: np.ndarray, src_cam_from_world: np.ndarray,
@@ -338,8 +358,8 @@ def verify_loop_by_reprojection(K: np.ndarray, src_points: np.ndarray, src_cam_f
         return LoopVerification(LoopStatus.TOO_FEW_MATCHES, n)
     Tq = np.asarray(src_cam_from_world, np.float64)
     Tc = np.asarray(tgt_cam_from_world, np.float64)
-    Tc = np.ascontiguousarray(np.broadcast_to(Tc, (n, 4, 4))) if Tc.ndim == 2 else Tc
-    xq, xc = np.asarray(src_xy, np.float64), np.asarray(tgt_xy, np.float64)
+    Tc = np.ascontiguousarray(np.broadcast_to(Tc, (n, 4, 4)) if Tc.ndim == 2 else Tc)
+    xq, xc = np.ascontiguousarray(src_xy, np.float64), np.ascontiguousarray(tgt_xy, np.float64)
     bq, bc = chi2 * np.asarray(src_scales, np.float64) ** 2, chi2 * np.asarray(tgt_scales, np.float64) ** 2
     rng = np.random.default_rng(None if cfg.random_seed < 0 else cfg.random_seed)
     best, best_count, done, needed, batch = None, 0, 0, cfg.max_trials, 100
@@ -360,6 +380,9 @@ def verify_loop_by_reprojection(K: np.ndarray, src_points: np.ndarray, src_cam_f
             needed = int(np.ceil(np.log(1 - confidence) / np.log(max(1 - w ** 3, 1e-12)))) if w < 1 else 1
     if best is None or best_count < 3:
         return LoopVerification(LoopStatus.NO_MODEL, n, max_error=float("nan"))
+    if best_count < cfg.min_inliers:  # as the Sim3Solver: no refinement of a hypothesis this weak
+        return LoopVerification(LoopStatus.TOO_FEW_INLIERS, n, best_count, best_count / n, best[0],
+                                float(np.cbrt(np.linalg.det(best[0][:3, :3]))), float("nan"), best[1])
     S, mask = refine_sim3(best[0], K, sp, Tq, xq, src_scales, tp, Tc, xc, tgt_scales, initial_inliers=best[1],
                           chi2=chi2)
     inliers = int(mask.sum())
