@@ -66,10 +66,10 @@ the hand-held jitter or weave of the path)."""
 
 def run_one(task: tuple[str, int, bool, int, dict]) -> dict:
     """One run: (case, seed, loop closing on, frames of the synthetic case, config overrides) -> a row."""
+    from slamkit import Slam, SlamConfig, ate, open_source  # before pycolmap: see slamkit/__init__.py
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
-    from slamkit import Slam, SlamConfig, ate, open_source
 
     case, seed, enabled, frames, overrides = task
     row = {"case": case, "seed": seed, "loop_closing": enabled, "error": ""}

@@ -99,10 +99,10 @@ def _absent(case: Case) -> str | None:
 
 def run_one(job: tuple[Case, str, int, dict]) -> dict:
     case, mode, seed, overrides = job
+    from slamkit import Slam, SlamConfig, SlamkitError, ate, open_source  # before pycolmap: see slamkit/__init__.py
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
-    from slamkit import Slam, SlamConfig, SlamkitError, ate, open_source
 
     row = {"row": "run", "case": case.name, "mode": mode, "seed": seed, "error": ""}
     if (why := _absent(case)) is not None:

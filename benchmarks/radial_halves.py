@@ -23,6 +23,7 @@ import csv
 import sys
 from pathlib import Path
 
+import numpy  # noqa: F401  (before pycolmap: see slamkit/__init__.py)
 import pycolmap
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -6,6 +6,20 @@
 >>> slam.save("runs/demo")                                                      # doctest: +SKIP
 """
 
+import sys as _sys
+
+_modules = list(_sys.modules)
+_first_pycolmap = next((k for k, m in enumerate(_modules) if m.split(".")[0] == "pycolmap"), None)
+if _first_pycolmap is not None and ("numpy" not in _modules or _first_pycolmap < _modules.index("numpy")):
+    # measured with pycolmap 4.2.1 (its wheel's libraries), numpy 2 and numba: after `import pycolmap` comes before
+    # numpy's first import, the first numba kernel compiled in the process corrupts the heap and the process
+    # aborts (SIGABRT, "malloc assertion failure" / "double free or corruption", no Python traceback), at
+    # whatever frame a kernel first compiles; importing numpy first (as slamkit does) avoids it
+    raise ImportError("slamkit: pycolmap was imported before numpy; with pycolmap 4.2's wheels that makes numba's "
+                      "compiler (slamkit's matching and pose kernels) abort the process. Import slamkit (or numpy) "
+                      "before pycolmap, e.g. move `import slamkit` above `import pycolmap`.")
+del _modules, _first_pycolmap
+
 from .interrupt import quiet_startup_interrupt as _quiet_startup_interrupt
 
 _quiet_startup_interrupt()  # the `slamkit` command: Ctrl-C while the imports below run is one line, not a traceback
