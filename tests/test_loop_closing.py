@@ -204,9 +204,9 @@ keyframes, so the map has drifted by metres (a loop that drifts; the room's loop
 def test_a_drifted_loop_closes_through_the_pipeline():
     """The default configuration on the city block: the first closure joins a keyframe at the end of the lap to one
     of the same street, looking the same way, at its start (ground truth), is in the result and the summary, and
-    brings the trajectory closer to the ground truth (measured: query frame 464, candidate 6, 20.8 m and 3.9 deg
-    apart, 46 of 69 matches; ATE 0.955 m before, 0.389 m after; before the verification by reprojection, frame
-    820 with 321, 2.79 -> 1.11 m)."""
+    brings the trajectory closer to the ground truth (measured: query frame 470, candidate 25, 86 of 106 matches,
+    ATE about 1.0 m before and 0.32 m after; before the verification by reprojection, frame 820 with 321, 2.79 ->
+    1.11 m)."""
     source = open_source(BLOCK)
     slam = Slam(source)  # the default configuration closes loops
     gt = source.ground_truth()
