@@ -63,6 +63,17 @@ def _state_view(name: str, doc: str) -> property:
     return property(lambda self: getattr(self.state, name), lambda self, v: setattr(self.state, name, v), doc=doc)
 
 
+def open_for_config(spec: str | Path, config: SlamConfig) -> FrameSource:
+    """Open the source ``spec`` for a run of ``config`` as every entry point does (``slamkit run``, ``Slam``,
+    ``ablate``, the notebook app): the config's camera numbers are applied before it opens (so a TUM folder
+    whose name does not say fr1/2/3 opens with them; a synthetic source refuses them, ConfigError
+    :data:`~slamkit.sources.base.CAMERA_IN_SPEC`); ``"auto"`` and another run's camera are applied by
+    :meth:`Slam.reset`, which refuses given numbers for a source opened otherwise in the same words."""
+    numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
+        config.camera) else None
+    return open_source(str(spec), camera=numbers)
+
+
 class Slam:
     """Monocular SLAM over a frame source, one frame per :meth:`step`.
 
@@ -101,9 +112,7 @@ class Slam:
         self.source_spec = str(source) if isinstance(source, (str, Path)) else None
         """How the source was opened (a path or spec), recorded in sessions so ``Slam.resume`` can reopen it."""
         if isinstance(source, (str, Path)):
-            numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
-                config.camera) else None  # "auto" and a camera.txt are applied by reset()
-            source = open_source(str(source), camera=numbers)
+            source = open_for_config(source, config)
         self.source = source
         self.callbacks: list[Callback] = list(callbacks or [])
         self.loader = FrameLoader(source)
@@ -117,7 +126,8 @@ class Slam:
         if config is not None:
             self.config = config.validate()
         c = self.config
-        self.camera, self.camera_origin, self.calibrator = choose_camera(c, self.source.camera)
+        self.camera, self.camera_origin, self.calibrator = choose_camera(
+            c, self.source.camera, bool(getattr(self.source, "camera_in_spec", False)))
         """The intrinsics in use; how they were obtained (the source's calibration, ``--camera``, a camera.txt, or
         estimated); and the self-calibration (``camera="auto"``, or no calibration given or found), else None."""
         extractor = create_extractor(c.features, **c.extractor_options())  # first: its missing weights first
@@ -595,5 +605,5 @@ class Slam:
         return load_session(path, source, config, callbacks, cls=cls)
 
 
-__all__ = ["Slam", "StepResult", "TrackedMatches", "FrameRecord", "FrameStatus", "Segment", "SlamState",
+__all__ = ["Slam", "open_for_config", "StepResult", "TrackedMatches", "FrameRecord", "FrameStatus", "Segment", "SlamState",
            "RETRACK_BELOW_KEYFRAMES", "INITIALIZING", "INITIALIZED", "TRACKED", "LOST", "SKIPPED", "ERROR"]

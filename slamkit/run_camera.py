@@ -20,20 +20,26 @@ from typing import Sequence
 
 from .camera import Intrinsics, focal_range
 from .config import SlamConfig, is_camera_path
-from .errors import CalibrationError, ImageReadError
+from .errors import CalibrationError, ConfigError, ImageReadError
 from .map import SlamMap, undistort_radial
+from .sources.base import CAMERA_IN_SPEC
 from .sources.calibration import camera_from_path
 from .state import Segment, SlamState
 from .stages.ba import BundleAdjuster
 from .stages.self_calibration import SelfCalibrator
 
 
-def choose_camera(config: SlamConfig, source_camera: Intrinsics) -> tuple[Intrinsics, str, SelfCalibrator | None]:
+def choose_camera(config: SlamConfig, source_camera: Intrinsics,
+                  camera_in_spec: bool = False) -> tuple[Intrinsics, str, SelfCalibrator | None]:
     """(camera, how it was obtained, the self-calibrator or None) for a run of ``config`` on a source whose
     calibration is ``source_camera``. An estimated camera starts at the sources' documented guess (no
-    distortion is known) until :func:`first_estimate`."""
+    distortion is known) until :func:`first_estimate`. ``camera_in_spec``: the source's camera is part of its
+    spec (``FrameSource.camera_in_spec``): given intrinsics are refused, ConfigError :data:`CAMERA_IN_SPEC`, the
+    words ``open_source`` refuses them in, so a source opened first (``ablate``, the app) is refused as ``run``'s."""
     c = config
     w, h = source_camera.width, source_camera.height
+    if camera_in_spec and c.camera and c.camera != "auto" and not is_camera_path(c.camera):
+        raise ConfigError(CAMERA_IN_SPEC)  # the words open_source says it in: one rule for every entry point
     if c.camera == "auto" or (not c.camera and source_camera.is_guess):
         return Intrinsics.from_focal(w, h), "estimated", SelfCalibrator(c.self_calibration, c.seed)
     if c.camera and is_camera_path(c.camera):  # a run folder or camera.txt: another run's camera
