@@ -189,10 +189,10 @@ def run_one(source_spec: str, overrides: Mapping[str, Any] | Iterable[tuple[str,
     Never raises for a failing run: a source that does not open, a configuration that does not validate or
     an exception inside SLAM give ``status="failed"`` with ``error`` (type and message), and so does a run
     that posed no frame (``error``: :data:`NOTHING_POSED` and why). The source is opened as ``slamkit run``
-    opens it (:func:`~slamkit.pipeline.open_for_config`): what ``run`` refuses fails here in the same words. ATE (Sim(3), all
-    frames and keyframes, metres) and RPE (1 frame, metres) are computed when the source has ground truth;
-    when they cannot be (too few posed frames), they are NaN and ``error`` says why. ``run_dir``: also
-    save the run folder there (:meth:`Slam.save`)."""
+    opens it (:func:`~slamkit.run_camera.open_for_config`): what ``run`` refuses fails here in the same
+    words. ATE (Sim(3), all frames and keyframes, metres) and RPE (1 frame, metres) are computed when the
+    source has ground truth; when they cannot be (too few posed frames), they are NaN and ``error`` says why.
+    ``run_dir``: also save the run folder there (:meth:`Slam.save`)."""
     overrides = dict(overrides)
     row: dict[str, Any] = {"source": str(source_spec), **overrides, "seed": int(seed), "status": STATUS_OK,
                            "error": ""}

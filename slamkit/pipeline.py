@@ -17,7 +17,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .config import SlamConfig, is_camera_path
+from .config import SlamConfig
 from .errors import CalibrationError, ImageReadError, check_type
 from .features import FrameFeatures, create_extractor, create_matcher
 from .frames import FrameLoader, thumbnail
@@ -29,9 +29,8 @@ from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
 from .rotation_phase import RotationPhase
 from .run_camera import (calibrate_radial, camera_report, choose_camera, describe_camera, final_global_ba,
-                         first_estimate, radial_due, refined_camera, refines)
+                         first_estimate, open_for_config, radial_due, refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
-from .sources import open_source
 from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster, filter_angle_after
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
@@ -61,17 +60,6 @@ Callback = Callable[["Slam", StepResult], None]
 def _state_view(name: str, doc: str) -> property:
     """A Slam attribute that is a field of its state."""
     return property(lambda self: getattr(self.state, name), lambda self, v: setattr(self.state, name, v), doc=doc)
-
-
-def open_for_config(spec: str | Path, config: SlamConfig) -> FrameSource:
-    """Open the source ``spec`` for a run of ``config`` as every entry point does (``slamkit run``, ``Slam``,
-    ``ablate``, the notebook app): the config's camera numbers are applied before it opens (so a TUM folder
-    whose name does not say fr1/2/3 opens with them; a synthetic source refuses them, ConfigError
-    :data:`~slamkit.sources.base.CAMERA_IN_SPEC`); ``"auto"`` and another run's camera are applied by
-    :meth:`Slam.reset`, which refuses given numbers for a source opened otherwise in the same words."""
-    numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
-        config.camera) else None
-    return open_source(str(spec), camera=numbers)
 
 
 class Slam:
@@ -605,5 +593,5 @@ class Slam:
         return load_session(path, source, config, callbacks, cls=cls)
 
 
-__all__ = ["Slam", "open_for_config", "StepResult", "TrackedMatches", "FrameRecord", "FrameStatus", "Segment", "SlamState",
+__all__ = ["Slam", "StepResult", "TrackedMatches", "FrameRecord", "FrameStatus", "Segment", "SlamState",
            "RETRACK_BELOW_KEYFRAMES", "INITIALIZING", "INITIALIZED", "TRACKED", "LOST", "SKIPPED", "ERROR"]

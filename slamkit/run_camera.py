@@ -16,17 +16,30 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import replace
+from pathlib import Path
 from typing import Sequence
 
 from .camera import Intrinsics, focal_range
 from .config import SlamConfig, is_camera_path
 from .errors import CalibrationError, ConfigError, ImageReadError
 from .map import SlamMap, undistort_radial
-from .sources.base import CAMERA_IN_SPEC
+from .sources import open_source
+from .sources.base import CAMERA_IN_SPEC, FrameSource
 from .sources.calibration import camera_from_path
 from .state import Segment, SlamState
 from .stages.ba import BundleAdjuster
 from .stages.self_calibration import SelfCalibrator
+
+
+def open_for_config(spec: str | Path, config: SlamConfig) -> FrameSource:
+    """Open the source ``spec`` for a run of ``config`` as every entry point does (``slamkit run``, ``Slam``,
+    ``ablate``, the notebook app): the config's camera numbers are applied before it opens (so a TUM folder
+    whose name does not say fr1/2/3 opens with them; a synthetic source refuses them, ConfigError
+    :data:`~slamkit.sources.base.CAMERA_IN_SPEC`); ``"auto"`` and another run's camera are applied by
+    :meth:`slamkit.Slam.reset`, which refuses given numbers for a source opened otherwise in the same words."""
+    numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
+        config.camera) else None
+    return open_source(str(spec), camera=numbers)
 
 
 def choose_camera(config: SlamConfig, source_camera: Intrinsics,
@@ -170,6 +183,6 @@ def describe_camera(camera: Intrinsics, origin: str, cal: SelfCalibrator | None)
     return f"fx={camera.fx:.1f} fy={camera.fy:.1f} cx={camera.cx:.1f} cy={camera.cy:.1f}, {how}"
 
 
-__all__ = ["choose_camera", "first_estimate", "with_radial", "clamped", "refines", "refined_camera", "use_radial",
+__all__ = ["open_for_config", "choose_camera", "first_estimate", "with_radial", "clamped", "refines", "refined_camera", "use_radial",
            "final_global_ba", "radial_due",
            "calibrate_radial", "camera_report", "describe_camera"]

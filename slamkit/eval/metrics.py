@@ -14,9 +14,10 @@ Conventions are evo's (``evo_ape`` / ``evo_rpe``, evo 1.38), so the numbers agre
    ``Alignment.kind`` "rotation"), the rotation error is reported and the ATE is undefined (NaN statistics,
    ``AteResult.undefined`` says why) rather than a distance to the mean of the ground truth;
    when the positions do not fix the position fit's rotation (a nearly straight path, or few and noisy centres:
-   :func:`rotation_fit_se_deg` above :data:`MAX_ROTATION_FIT_SE_DEG` and a quarter of the orientation error), evo's angle depends on an arbitrary turn
-   about the path, so beside it the orientation error after aligning rotations alone (the chordal L2 mean above)
-   is reported as the meaningful figure (``AteResult.rotation_free`` says why; :func:`ate_line` shows it);
+   :func:`rotation_fit_se_deg` above :data:`MAX_ROTATION_FIT_SE_DEG` and a quarter of the orientation error),
+   evo's angle depends on an arbitrary turn about the path, so beside it the orientation error after aligning
+   rotations alone (the chordal L2 mean above) is reported as the meaningful figure (``AteResult.rotation_free``
+   says why; :func:`ate_line` shows it);
 4. RPE on the aligned matched poses, for pairs ``(i, j)`` of matched frames chosen on the estimate: with
    ``Q`` ground truth and ``P`` estimate, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the translation error is
    ``|t(E)|`` (metres), the rotation error the angle of ``R(E)`` (degrees). Pairs for ``unit="frames"``
@@ -43,8 +44,9 @@ from .align import Alignment, estimate_alignment
 from .associate import associate
 from .pairing import load_pair
 
-__all__ = ["ROTATION_ONLY_ATE", "MAX_ROTATION_FIT_SE_DEG", "ErrorStats", "AteResult", "RpeResult", "ate", "ate_line", "rpe", "evaluate",
-           "matched_warning", "MIN_MATCHED", "MIN_MATCHED_FRACTION"]
+__all__ = ["ROTATION_ONLY_ATE", "MAX_ROTATION_FIT_SE_DEG", "rotation_fit_se_deg", "ErrorStats", "AteResult",
+           "RpeResult", "ate", "ate_line", "rpe", "evaluate", "matched_warning", "MIN_MATCHED",
+           "MIN_MATCHED_FRACTION"]
 
 #: fewer matched poses than this raise AssociationError (Umeyama needs 3)
 MIN_MATCHED = 3

@@ -32,7 +32,8 @@ import numpy as np
 from ..config import SlamConfig
 from ..errors import SlamkitError
 from ..exporter import export
-from ..pipeline import Slam, StepResult, open_for_config
+from ..pipeline import Slam, StepResult
+from ..run_camera import open_for_config
 from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
@@ -86,7 +87,7 @@ class SlamApp(AppWidgets):
     # ------------------------------------------------------------------ sources
     def _open(self, spec: str, config: SlamConfig | None = None):
         """The source ``spec``, opened as ``slamkit run`` opens it for ``config`` (its camera numbers applied
-        first, :func:`~slamkit.pipeline.open_for_config`), once per spec and camera."""
+        first, :func:`~slamkit.run_camera.open_for_config`), once per spec and camera."""
         config = config if config is not None else self.slam.config if hasattr(self, "slam") else SlamConfig()
         key = (spec, config.camera)
         if key not in self._sources:
