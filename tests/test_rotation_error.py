@@ -182,3 +182,20 @@ def test_a_short_real_run_prints_the_meaningful_rotation_error(tmp_path, capsys)
     assert res["rotation_deg"]["rmse"] > 1.0 and res["rotation_free"]  # evo's, beside it
     md = (out / "report.md").read_text()
     assert "after aligning orientations" in md and "evo_ape angle after the position fit" in md
+
+
+def test_few_noisy_centres_leave_the_rotation_free_too():
+    """Four centres at the corners of a 1 m square path, 2 cm of noise: not straight, but the position fit's
+    rotation is known to about a degree only (the residual's 12 - 7 degrees of freedom counted), more than a
+    quarter of the 0.5 deg orientation error: the orientation error is shown and the line says why."""
+    n = 4
+    P = np.tile(np.eye(4), (n, 1, 1))
+    P[:, :3, 3] = [[0, 0, 0], [1, 0, 0], [1, 1, 0.2], [0, 1, 0.1]]
+    P[:, :3, :3] = _rot(np.c_[np.zeros(n), np.zeros(n), np.linspace(0, 1.5, n)])
+    gt = Trajectory(np.arange(n) / 30.0, P)
+    a = ate(gt, _estimate(gt, pos_noise=0.02, angles_deg=np.full(n, 0.5), seed=1))
+    assert a.rotation_fit_se_deg > 0.5 and a.rotation_free.startswith("4 camera centres this noisy are too few")
+    assert a.oriented_rotation.rmse == pytest.approx(0.5, abs=0.2)
+    exact = ate(gt, _estimate(gt, pos_noise=0.0, angles_deg=np.full(n, 0.5), seed=1))
+    assert exact.rotation_fit_se_deg < 1e-6 and not exact.rotation_free  # exact centres fix it
+    assert exact.rotation.rmse == pytest.approx(0.5, abs=1e-6)
