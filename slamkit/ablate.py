@@ -43,12 +43,13 @@ from .io import atomic_write_bytes, atomic_write_text
 from .io.run_dir import check_output, out_dir_lock
 from .io.run import _ground_truth as gt_of_run
 from .pipeline import Slam
-from .sources import open_source
 
 __all__ = ["Grid", "parse_grid", "Task", "plan", "run_one", "sweep", "load_results", "markdown_table",
            "RESULT_COLUMNS"]
 
 STATUS_OK, STATUS_FAILED, STATUS_LOST = "ok", "failed", "lost"
+NOTHING_POSED = "no frame was posed, so no map was made"
+"""The ``error`` of a failed row whose run went through its frames and posed none (``slamkit run`` exits 3)."""
 
 RESULT_COLUMNS = [
     "status", "error", "ate_rmse_m", "ate_keyframes_rmse_m", "rpe_rmse_m", "ate_matched", "frames", "frames_posed",
@@ -186,10 +187,12 @@ def run_one(source_spec: str, overrides: Mapping[str, Any] | Iterable[tuple[str,
     """Run SLAM on ``source_spec`` with ``overrides`` and ``seed``; the result row as a JSON-able dict.
 
     Never raises for a failing run: a source that does not open, a configuration that does not validate or
-    an exception inside SLAM give ``status="failed"`` with ``error`` (type and message). ATE (Sim(3), all
-    frames and keyframes, metres) and RPE (1 frame, metres) are computed when the source has ground truth;
-    when they cannot be (too few posed frames), they are NaN and ``error`` says why. ``run_dir``: also
-    save the run folder there (:meth:`Slam.save`)."""
+    an exception inside SLAM give ``status="failed"`` with ``error`` (type and message), and so does a run
+    that posed no frame (``error``: :data:`NOTHING_POSED` and why). The source is opened as ``slamkit run``
+    opens it (:func:`~slamkit.run_camera.open_for_config`): what ``run`` refuses fails here in the same
+    words. ATE (Sim(3), all frames and keyframes, metres) and RPE (1 frame, metres) are computed when the
+    source has ground truth; when they cannot be (too few posed frames), they are NaN and ``error`` says why.
+    ``run_dir``: also save the run folder there (:meth:`Slam.save`)."""
     overrides = dict(overrides)
     row: dict[str, Any] = {"source": str(source_spec), **overrides, "seed": int(seed), "status": STATUS_OK,
                            "error": ""}
@@ -201,7 +204,7 @@ def run_one(source_spec: str, overrides: Mapping[str, Any] | Iterable[tuple[str,
         pycolmap.logging.minloglevel = 2
     
         cfg = SlamConfig().with_overrides(**overrides, seed=int(seed))
-        slam = Slam(open_source(str(source_spec)), cfg)
+        slam = Slam(str(source_spec), cfg)  # opened as `slamkit run` opens it: the same checks, the same words
         slam.run()
         if run_dir is not None:
             slam.save(run_dir)
@@ -214,7 +217,11 @@ def run_one(source_spec: str, overrides: Mapping[str, Any] | Iterable[tuple[str,
         for stage, sec in s["timings_s"].items():
             row[f"t_{stage}_s"] = float(sec)
         gt = _ground_truth(slam)
-        if gt is None or len(gt) == 0:
+        if not s["frames_posed"]:  # `slamkit run` exits 3 for it: no map is not a result
+            row["status"] = STATUS_FAILED
+            row["error"] = NOTHING_POSED + (f": {s['not_initialized_reason']}" if s.get("not_initialized_reason")
+                                            else "")
+        elif gt is None or len(gt) == 0:
             row["error"] = "no ground truth: ATE not computed"
         else:
 

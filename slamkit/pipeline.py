@@ -17,7 +17,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from .config import SlamConfig, is_camera_path
+from .config import SlamConfig
 from .errors import CalibrationError, ImageReadError, check_type
 from .features import FrameFeatures, create_extractor, create_matcher
 from .frames import FrameLoader, thumbnail
@@ -29,9 +29,8 @@ from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
 from .rotation_phase import RotationPhase
 from .run_camera import (calibrate_radial, camera_report, choose_camera, describe_camera, final_global_ba,
-                         first_estimate, radial_due, refined_camera, refines)
+                         first_estimate, open_for_config, radial_due, refined_camera, refines)
 from .session import load_session, save_session, unfinished_snapshot
-from .sources import open_source
 from .sources.base import FrameSource
 from .stages.ba import BundleAdjuster, filter_angle_after
 from .stages.culling import KeyframeCuller, KeyframeCullingConfig
@@ -101,9 +100,7 @@ class Slam:
         self.source_spec = str(source) if isinstance(source, (str, Path)) else None
         """How the source was opened (a path or spec), recorded in sessions so ``Slam.resume`` can reopen it."""
         if isinstance(source, (str, Path)):
-            numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
-                config.camera) else None  # "auto" and a camera.txt are applied by reset()
-            source = open_source(str(source), camera=numbers)
+            source = open_for_config(source, config)
         self.source = source
         self.callbacks: list[Callback] = list(callbacks or [])
         self.loader = FrameLoader(source)
@@ -117,7 +114,8 @@ class Slam:
         if config is not None:
             self.config = config.validate()
         c = self.config
-        self.camera, self.camera_origin, self.calibrator = choose_camera(c, self.source.camera)
+        self.camera, self.camera_origin, self.calibrator = choose_camera(
+            c, self.source.camera, bool(getattr(self.source, "camera_in_spec", False)))
         """The intrinsics in use; how they were obtained (the source's calibration, ``--camera``, a camera.txt, or
         estimated); and the self-calibration (``camera="auto"``, or no calibration given or found), else None."""
         extractor = create_extractor(c.features, **c.extractor_options())  # first: its missing weights first

@@ -16,24 +16,43 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import replace
+from pathlib import Path
 from typing import Sequence
 
 from .camera import Intrinsics, focal_range
 from .config import SlamConfig, is_camera_path
-from .errors import CalibrationError, ImageReadError
+from .errors import CalibrationError, ConfigError, ImageReadError
 from .map import SlamMap, undistort_radial
+from .sources import open_source
+from .sources.base import CAMERA_IN_SPEC, FrameSource
 from .sources.calibration import camera_from_path
 from .state import Segment, SlamState
 from .stages.ba import BundleAdjuster
 from .stages.self_calibration import SelfCalibrator
 
 
-def choose_camera(config: SlamConfig, source_camera: Intrinsics) -> tuple[Intrinsics, str, SelfCalibrator | None]:
+def open_for_config(spec: str | Path, config: SlamConfig) -> FrameSource:
+    """Open the source ``spec`` for a run of ``config`` as every entry point does (``slamkit run``, ``Slam``,
+    ``ablate``, the notebook app): the config's camera numbers are applied before it opens (so a TUM folder
+    whose name does not say fr1/2/3 opens with them; a synthetic source refuses them, ConfigError
+    :data:`~slamkit.sources.base.CAMERA_IN_SPEC`); ``"auto"`` and another run's camera are applied by
+    :meth:`slamkit.Slam.reset`, which refuses given numbers for a source opened otherwise in the same words."""
+    numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
+        config.camera) else None
+    return open_source(str(spec), camera=numbers)
+
+
+def choose_camera(config: SlamConfig, source_camera: Intrinsics,
+                  camera_in_spec: bool = False) -> tuple[Intrinsics, str, SelfCalibrator | None]:
     """(camera, how it was obtained, the self-calibrator or None) for a run of ``config`` on a source whose
     calibration is ``source_camera``. An estimated camera starts at the sources' documented guess (no
-    distortion is known) until :func:`first_estimate`."""
+    distortion is known) until :func:`first_estimate`. ``camera_in_spec``: the source's camera is part of its
+    spec (``FrameSource.camera_in_spec``): given intrinsics are refused, ConfigError :data:`CAMERA_IN_SPEC`, the
+    words ``open_source`` refuses them in, so a source opened first (``ablate``, the app) is refused as ``run``'s."""
     c = config
     w, h = source_camera.width, source_camera.height
+    if camera_in_spec and c.camera and c.camera != "auto" and not is_camera_path(c.camera):
+        raise ConfigError(CAMERA_IN_SPEC)  # the words open_source says it in: one rule for every entry point
     if c.camera == "auto" or (not c.camera and source_camera.is_guess):
         return Intrinsics.from_focal(w, h), "estimated", SelfCalibrator(c.self_calibration, c.seed)
     if c.camera and is_camera_path(c.camera):  # a run folder or camera.txt: another run's camera
@@ -164,6 +183,6 @@ def describe_camera(camera: Intrinsics, origin: str, cal: SelfCalibrator | None)
     return f"fx={camera.fx:.1f} fy={camera.fy:.1f} cx={camera.cx:.1f} cy={camera.cy:.1f}, {how}"
 
 
-__all__ = ["choose_camera", "first_estimate", "with_radial", "clamped", "refines", "refined_camera", "use_radial",
+__all__ = ["open_for_config", "choose_camera", "first_estimate", "with_radial", "clamped", "refines", "refined_camera", "use_radial",
            "final_global_ba", "radial_due",
            "calibrate_radial", "camera_report", "describe_camera"]

@@ -43,7 +43,7 @@ FINISHED, INTERRUPTED, FAILED, ABORTED = "finished", "interrupted", "failed", "a
 EXIT_OK = 0
 """A map was made (``run``), the command did what it was asked (the others)."""
 EXIT_FAILED = 1
-"""A stage failed (the frames before it are saved), or some runs of an ablation failed."""
+"""A stage failed (the frames before it are saved), or some runs of an ablation failed (posing no frame is failing)."""
 EXIT_USAGE = 2
 """Bad input: a path, value or file at fault, named in one line; nothing was written."""
 EXIT_NOTHING_POSED = 3
@@ -51,7 +51,7 @@ EXIT_NOTHING_POSED = 3
 EXIT_POOR_MATCH = 4
 """``eval``: fewer than half of the estimate's poses matched ground truth: the numbers are not a measure of the run."""
 EXIT_CODES = (f"exit codes: {EXIT_OK} done (run: a map was made); {EXIT_FAILED} a stage failed (frames before it "
-              f"saved) or an ablation run failed; {EXIT_USAGE} bad input (one line names it; nothing written); "
+              f"saved) or an ablation run failed or posed no frame; {EXIT_USAGE} bad input (one line names it; nothing written); "
               f"{EXIT_NOTHING_POSED} run: ran but posed no frame (no map); {EXIT_POOR_MATCH} eval: less than half of "
               "the estimate matched ground truth; 128+N stopped by signal N (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP): a "
               "run saves what it built first; 141 the output pipe was closed")

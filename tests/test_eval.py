@@ -260,8 +260,11 @@ def test_evaluate_is_json_serialisable_and_reads_files(tmp_path):
     assert back["estimate"] == str(est_path) and back["alignment"]["kind"] == "sim3"
     in_memory = evaluate(est, gt)["ate"]
     rot, rot_file = in_memory.pop("rotation_deg"), summary["ate"].pop("rotation_deg")
+    ori, ori_file = in_memory.pop("rotation_oriented_deg"), summary["ate"].pop("rotation_oriented_deg")
+    se, se_file = in_memory.pop("rotation_fit_se_deg"), summary["ate"].pop("rotation_fit_se_deg")
     assert in_memory == summary["ate"]  # the file's quaternions round to 1e-15 degrees of rotation error:
     assert rot["rmse"] == pytest.approx(rot_file["rmse"], abs=1e-9) and rot["count"] == rot_file["count"]
+    assert ori["rmse"] == pytest.approx(ori_file["rmse"], abs=1e-9) and se == pytest.approx(se_file, rel=1e-9)
 
 
 # ------------------------------------------------------------------------------------------ evo

@@ -211,16 +211,17 @@ def test_folder_opens_in_natural_order_with_skip_and_timestamps(tmp_path):
     assert len(src) == 7
     order = [1, 2, 3, 4, 10, 11, 20]
     assert [p.name for p in src.paths] == [f"frame{i}.{'jpg' if i == 4 else 'png'}" for i in order]
-    assert np.allclose(src.timestamps, np.arange(7) / 10)
+    # the names are frame numbers (issue 50): each frame's time is its number / fps, whatever numbers are missing
+    assert np.allclose(src.timestamps, np.array(order) / 10) and list(src.frame_ids) == order
     assert src.camera == Intrinsics.from_focal(W, H)  # the documented guess
     assert src.gt_poses is None and src.ground_truth() is None
     f = src[4]
-    assert (f.index, f.frame_id, f.gray.shape, f.color.shape) == (4, 4, (H, W), (H, W, 3))
+    assert (f.index, f.frame_id, f.gray.shape, f.color.shape) == (4, 10, (H, W), (H, W, 3))
     assert f.path.name == "frame10.png"
 
     src = open_folder(tmp_path, frame_skip=2, max_frames=3, camera=60.0)
-    assert len(src) == 3 and list(src.frame_ids) == [0, 2, 4]
-    assert np.allclose(src.timestamps, [0, 2 / 30, 4 / 30])
+    assert len(src) == 3 and list(src.frame_ids) == [1, 3, 10]
+    assert np.allclose(src.timestamps, [1 / 30, 3 / 30, 10 / 30])
     assert [pixel(f) for f in src] == [1, 3, 10]
     assert (src.camera.fx, src.camera.cx) == (60.0, W / 2)
     assert open_folder(tmp_path, camera=CAM).camera == CAM

@@ -13,6 +13,11 @@ Conventions are evo's (``evo_ape`` / ``evo_rpe``, evo 1.38), so the numbers agre
    rotation nearest to ``sum_i R_gt,i R_est,i^T`` (the chordal L2 mean, SO(3)'s analogue of Umeyama's rotation;
    ``Alignment.kind`` "rotation"), the rotation error is reported and the ATE is undefined (NaN statistics,
    ``AteResult.undefined`` says why) rather than a distance to the mean of the ground truth;
+   when the positions do not fix the position fit's rotation (a nearly straight path, or few and noisy centres:
+   :func:`rotation_fit_se_deg` above :data:`MAX_ROTATION_FIT_SE_DEG` and a quarter of the orientation error),
+   evo's angle depends on an arbitrary turn about the path, so beside it the orientation error after aligning
+   rotations alone (the chordal L2 mean above) is reported as the meaningful figure (``AteResult.rotation_free``
+   says why; :func:`ate_line` shows it);
 4. RPE on the aligned matched poses, for pairs ``(i, j)`` of matched frames chosen on the estimate: with
    ``Q`` ground truth and ``P`` estimate, ``E = (Q_i^-1 Q_j)^-1 (P_i^-1 P_j)``; the translation error is
    ``|t(E)|`` (metres), the rotation error the angle of ``R(E)`` (degrees). Pairs for ``unit="frames"``
@@ -39,8 +44,9 @@ from .align import Alignment, estimate_alignment
 from .associate import associate
 from .pairing import load_pair
 
-__all__ = ["ROTATION_ONLY_ATE", "ErrorStats", "AteResult", "RpeResult", "ate", "ate_line", "rpe", "evaluate",
-           "matched_warning", "MIN_MATCHED", "MIN_MATCHED_FRACTION"]
+__all__ = ["ROTATION_ONLY_ATE", "MAX_ROTATION_FIT_SE_DEG", "rotation_fit_se_deg", "ErrorStats", "AteResult",
+           "RpeResult", "ate", "ate_line", "rpe", "evaluate", "matched_warning", "MIN_MATCHED",
+           "MIN_MATCHED_FRACTION"]
 
 #: fewer matched poses than this raise AssociationError (Umeyama needs 3)
 MIN_MATCHED = 3
@@ -48,6 +54,12 @@ MIN_MATCHED = 3
 RPE_REL_DELTA_TOL = 0.1
 #: ``AteResult.undefined`` of an estimate posed by rotation only (every camera centre at one point)
 ROTATION_ONLY_ATE = "ATE undefined: rotation only"
+#: degrees: the position fit leaves its rotation free (evo's angle after it is then arbitrary) when the standard
+#: error of that rotation about its weakest axis, :func:`rotation_fit_se_deg`, exceeds this and
+#: :data:`MAX_ROTATION_FIT_SE_FRACTION` of the orientation error's RMSE (after aligning orientations alone)
+MAX_ROTATION_FIT_SE_DEG = 0.1
+#: below this fraction of the orientation error the fit's freedom adds at most 3 % to evo's angle (in quadrature)
+MAX_ROTATION_FIT_SE_FRACTION = 0.25
 _UNITS = {"frames": "frames", "f": "frames", "m": "m", "meters": "m", "metres": "m"}
 
 
@@ -107,6 +119,14 @@ class AteResult:
     """(K,) degrees per matched frame: the angle of ``R_est,aligned^T R_gt`` (evo_ape ``--pose_relation angle_deg``)."""
     undefined: str = ""
     """Why the position error means nothing ("" when it does): :data:`ROTATION_ONLY_ATE`; its stats are then NaN."""
+    oriented_rotation_errors_deg: np.ndarray = None
+    """(K,) degrees per matched frame after aligning the orientations alone (the rotation nearest to
+    ``sum_i R_gt,i R_est,i^T``): the meaningful rotation error when the positions leave the fit's rotation free."""
+    rotation_fit_se_deg: float = 0.0
+    """Degrees: the standard error of the position fit's rotation about its weakest axis (:func:`rotation_fit_se_deg`;
+    0 for an alignment that fits no rotation to the positions)."""
+    rotation_free: str = ""
+    """Why evo's angle after the position fit is arbitrary ("" when the positions fix the fit's rotation)."""
 
     rmse = property(lambda self: self.stats.rmse, doc="metres")
     mean = property(lambda self: self.stats.mean, doc="metres")
@@ -119,6 +139,17 @@ class AteResult:
     def rotation(self) -> ErrorStats:
         """Statistics of ``rotation_errors_deg`` (degrees)."""
         return ErrorStats.from_errors(self.rotation_errors_deg)
+
+    @property
+    def oriented_rotation(self) -> ErrorStats:
+        """Statistics of ``oriented_rotation_errors_deg`` (degrees): orientations aligned alone."""
+        return ErrorStats.from_errors(self.oriented_rotation_errors_deg)
+
+    @property
+    def meaningful_rotation(self) -> ErrorStats:
+        """The rotation error to show (degrees): ``oriented_rotation`` when ``rotation_free``, else ``rotation``
+        (evo_ape's angle after the position fit)."""
+        return self.oriented_rotation if self.rotation_free else self.rotation
 
     @property
     def n_matched(self) -> int:
@@ -151,14 +182,23 @@ class AteResult:
         if self.undefined:
             return (f"{self.undefined}; rotation error after aligning the orientations: RMSE {rot.rmse:.3g} deg, "
                     f"max {rot.max:.3g} deg\n  over {self.n_matched} of {self.n_est} estimated poses")
+        rot_text = (f"rotation RMSE {self.oriented_rotation.rmse:.3g} deg after aligning orientations: "
+                    f"{self.rotation_free}" if self.rotation_free else f"rotation RMSE {rot.rmse:.3g} deg")
         return (f"ATE after {kind} alignment (scale {self.alignment.scale:.4g}):\n"
                 f"  RMSE {k * self.rmse:.3g} {unit}, mean {k * self.mean:.3g} {unit}, median {k * self.median:.3g} "
-                f"{unit}, max {k * self.max:.3g} {unit}; rotation RMSE {rot.rmse:.3g} deg\n"
+                f"{unit}, max {k * self.max:.3g} {unit}; {rot_text}\n"
                 f"  over {self.n_matched} of {self.n_est} estimated poses ({self.n_gt} ground-truth poses)")
 
+    def rotation_dict(self) -> dict:
+        """The rotation error's part of :meth:`to_dict`: ``rotation_deg`` (evo_ape's angle after the position fit),
+        ``rotation_oriented_deg`` (after aligning orientations alone), ``rotation_fit_se_deg`` and
+        ``rotation_free`` (why the first is arbitrary, "" when it is not)."""
+        return {"rotation_deg": self.rotation.to_dict(), "rotation_oriented_deg": self.oriented_rotation.to_dict(),
+                "rotation_fit_se_deg": self.rotation_fit_se_deg, "rotation_free": self.rotation_free}
+
     def to_dict(self) -> dict:
-        """JSON-serialisable summary (no per-frame arrays)."""
-        return {**self.stats.to_dict(), "rotation_deg": self.rotation.to_dict(), "undefined": self.undefined,
+        """JSON-serialisable summary (no per-frame arrays); the rotation keys are :meth:`rotation_dict`'s."""
+        return {**self.stats.to_dict(), **self.rotation_dict(), "undefined": self.undefined,
                 "matched": self.n_matched, "estimate_poses": self.n_est,
                 "ground_truth_poses": self.n_gt, "estimate_matched_fraction": self.est_matched_fraction,
                 "ground_truth_matched_fraction": self.gt_matched_fraction,
@@ -270,16 +310,64 @@ def rotation_alignment(est: Trajectory, gt: Trajectory) -> Alignment:
     return Alignment(R, gt.positions.mean(axis=0) - R @ est.positions.mean(axis=0), 1.0, "rotation")
 
 
+def rotation_fit_se_deg(positions: np.ndarray, residuals: np.ndarray, params: int = 7) -> float:
+    """Degrees: the standard error of a position fit's rotation about its weakest axis.
+
+    ``positions`` (N, 3) the aligned camera centres (metres of the ground truth), ``residuals`` (N, 3) their
+    position errors after the fit (metres), ``params`` the fit's parameters (7 for Sim(3), 6 for SE(3)).
+    Linearising Umeyama's least squares about the fitted rotation, a small turn ``w`` (radians) moves centre i by
+    ``w x c_i`` (``c_i`` centred), so the information on ``w`` is the centres' inertia tensor
+    ``sum_i |c_i|^2 I - c_i c_i^T`` (m^2), whose smallest eigenvalue is ``s2^2 + s3^2``, the two smaller singular
+    values of the centred positions (their spread across the path's main axis). With the residual variance per
+    coordinate ``sigma^2 = SSE / (3N - params)`` (m^2; the denominator counts what few frames leave to the
+    residuals) the standard error of the turn about that axis is ``sigma / sqrt(s2^2 + s3^2)``. A nearly straight
+    path (s2, s3 small against s1) or few, noisy centres make it large: the positions then leave the turn
+    about the path to noise, and evo's angle after the fit with it. ``inf`` when the centres are on one line.
+    """
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(residuals, dtype=np.float64).reshape(-1, 3)
+    sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    info = float(sv[1] ** 2 + sv[2] ** 2)
+    dof = 3 * len(p) - params
+    sigma2 = float((r**2).sum()) / max(dof, 1)
+    if not info > 0:
+        return float("inf")
+    return float(np.degrees(np.sqrt(sigma2 / info)))
+
+
+def _rotation_free_reason(positions: np.ndarray, se_deg: float) -> str:
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+    why = ("the path is nearly straight" if not sv[1] > 0.2 * sv[0] else
+           f"{len(p)} camera centres this noisy are too few")
+    return f"{why}, so the position fit leaves its rotation free (±{se_deg:.2g} deg)"
+
+
+def _oriented_errors_deg(est: Trajectory, gt: Trajectory) -> np.ndarray:
+    """(K,) degrees: the angle of ``(R R_est,i)^T R_gt,i`` with R the rotation nearest to ``sum_i R_gt,i R_est,i^T``
+    (orientations aligned alone; the same for the raw and the position-aligned estimate)."""
+    aligned = np.einsum("ij,njk->nik", rotation_alignment(est, gt).rotation, est.poses[:, :3, :3])
+    return np.atleast_1d(rotation_angle_deg(np.einsum("nji,njk->nik", aligned, gt.poses[:, :3, :3])))
+
+
 def _ate(m: _Matched) -> AteResult:
     rot = rotation_angle_deg(np.einsum("nji,njk->nik", m.est.poses[:, :3, :3], m.gt.poses[:, :3, :3]))
     undefined = ROTATION_ONLY_ATE if m.alignment.kind == "rotation" else ""
     errors = np.linalg.norm(m.est.positions - m.gt.positions, axis=1)
+    oriented = _oriented_errors_deg(m.est, m.gt)
+    se, free = 0.0, ""
+    if m.alignment.kind in ("sim3", "se3"):
+        se = rotation_fit_se_deg(m.est.positions, m.est.positions - m.gt.positions,
+                                 7 if m.alignment.kind == "sim3" else 6)
+        bound = max(MAX_ROTATION_FIT_SE_DEG, MAX_ROTATION_FIT_SE_FRACTION * ErrorStats.from_errors(oriented).rmse)
+        if not se <= bound:
+            free = _rotation_free_reason(m.gt.positions, se)
     stats = ErrorStats.from_errors(errors)
     if undefined:  # a distance to the ground truth's mean centre, not an error: NaN statistics
         stats = ErrorStats(*[float("nan")] * 7, count=len(errors))
     return AteResult(stats, errors, m.est.timestamps.copy(), m.gt.timestamps.copy(),
                      m.idx_gt, m.idx_est, m.n_est, m.n_gt, m.alignment, m.max_dt, m.offset, m.gt_span,
-                     np.atleast_1d(rot), undefined)
+                     np.atleast_1d(rot), undefined, oriented, se, free)
 
 
 def _pairs_by_frames(n: int, delta: int, all_pairs: bool) -> np.ndarray:
@@ -369,9 +457,14 @@ def rpe(gt: Trajectory, est: Trajectory, delta: float = 1, unit: str = "frames",
 
 def ate_line(ate_dict: dict) -> str:
     """One line for people from an ATE dict (``AteResult.to_dict()`` or ``evaluate(...)["ate"]``): the ATE RMSE in
-    cm and the rotation error's in degrees, or :data:`ROTATION_ONLY_ATE` with the rotation error alone."""
+    cm and the rotation error's in degrees, or :data:`ROTATION_ONLY_ATE` with the rotation error alone. When the
+    positions leave the fit's rotation free (``rotation_free``) the rotation error shown is the one after aligning
+    orientations alone, and the line says why."""
     rot = (ate_dict.get("rotation_deg") or {}).get("rmse")
     rot_text = f"rotation error RMSE {rot:.3f} deg" if rot is not None else ""
+    oriented = (ate_dict.get("rotation_oriented_deg") or {}).get("rmse")
+    if ate_dict.get("rotation_free") and oriented is not None and not ate_dict.get("undefined"):
+        rot_text = f"rotation error RMSE {oriented:.3f} deg after aligning orientations: {ate_dict['rotation_free']}"
     if ate_dict.get("undefined"):
         return f"{ate_dict['undefined']}; {rot_text} (orientations aligned)"
     return f"ATE RMSE {100 * ate_dict['rmse']:.2f} cm" + (f", {rot_text}" if rot_text else "")
@@ -416,7 +509,7 @@ def evaluate(est: Trajectory | str | os.PathLike, gt: Trajectory | str | os.Path
     result = {
         "estimate": None if isinstance(est, Trajectory) else str(Path(est)),
         "ground_truth": None if isinstance(gt, Trajectory) else str(Path(gt)),
-        "ate": {**a.stats.to_dict(), "rotation_deg": a.rotation.to_dict(), "undefined": a.undefined},
+        "ate": {**a.stats.to_dict(), **a.rotation_dict(), "undefined": a.undefined},
         "rpe": r.to_dict(),
         "matched": a.n_matched,
         "estimate_poses": a.n_est,

@@ -270,9 +270,14 @@ def _row(name: str, part: dict | None) -> str:
     t = rp.get("translation", {}).get("rmse")
     d = rp.get("rotation_deg", {}).get("rmse")
     rot = (a.get("rotation_deg") or {}).get("rmse")
+    oriented = (a.get("rotation_oriented_deg") or {}).get("rmse")
+    if a.get("rotation_free") and oriented is not None and rot is not None:
+        rot_text = (f"; rotation error RMSE {oriented:.3f}° after aligning orientations: {a['rotation_free']} "
+                    f"(evo_ape angle after the position fit: {rot:.3f}°)")
+    else:
+        rot_text = f"; rotation error RMSE {rot:.3f}°" if rot is not None else ""
     note = (f"{a['undefined']}; rotation error RMSE {rot:.3f}°" if a.get("undefined") else
-            f"scale {a['alignment'].get('scale', float('nan')):.4g}"
-            + (f"; rotation error RMSE {rot:.3f}°" if rot is not None else ""))
+            f"scale {a['alignment'].get('scale', float('nan')):.4g}" + rot_text)
     rpe_cell = f"{_cm(t)} cm, {d:.3f}°" if d is not None else "–"
     return (f"| {name} | {a['count']} | {_cm(a['rmse'])} | {_cm(a['mean'])} | {_cm(a['median'])} | {_cm(a['max'])} "
             f"| {rpe_cell} | {html.escape(note)} |")
@@ -285,7 +290,10 @@ def _report(res: dict, run: Path, dest: Path) -> tuple[str, str]:
     lines = [f"# Evaluation of `{run.name}`", "",
              f"Estimate `{Path(res['estimate']).name}` against `{res['ground_truth']}`; Sim(3) alignment "
              f"(Umeyama on the matched camera centres), {paired}; rotation error: the angle of "
-             "R_est,aligned^T R_gt (evo_ape --pose_relation angle_deg).", ""]
+             "R_est,aligned^T R_gt (evo_ape --pose_relation angle_deg), or, when the positions leave the fit's "
+             "rotation free (a nearly straight path: its standard error about the path, from the centres' spread "
+             "across it, above 0.1° and a quarter of the orientation error), the angle after aligning orientations "
+             "alone (the rotation nearest to sum R_gt R_est^T), with evo's beside it.", ""]
     if res["all_frames"]["ate"].get("undefined"):
         lines += [f"**{res['all_frames']['ate']['undefined']}**: every estimated camera centre is one point, so "
                   "the orientations are aligned by the rotation nearest to sum R_gt R_est^T and only the rotation "

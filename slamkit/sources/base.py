@@ -23,6 +23,9 @@ from ..camera import Intrinsics
 from ..errors import C_INT_MAX, ConfigError, ImageReadError, SourceError, shown
 from ..types import Frame, Trajectory
 
+CAMERA_IN_SPEC = "camera= cannot be given for synthetic sources (their camera is part of the spec)"
+"""Why given intrinsics are refused for a source whose camera is part of its spec (``FrameSource.camera_in_spec``)."""
+
 
 def check_skip_and_max(frame_skip: int, max_frames: int | None) -> None:
     if not 1 <= int(frame_skip) <= C_INT_MAX:
@@ -54,6 +57,9 @@ class FrameSource:
     timestamps: np.ndarray
     frame_ids: np.ndarray
     gt_poses: np.ndarray | None = None
+    camera_in_spec: bool = False
+    """The camera is part of the source's definition (rendered sources): given intrinsics are refused
+    (:data:`CAMERA_IN_SPEC`), by :func:`~slamkit.sources.open_source` and by every run on the source alike."""
 
     def __len__(self) -> int:
         return len(self.timestamps)

@@ -1,8 +1,13 @@
 """A folder of images (any camera), plus the image-listing helpers every layout shares.
 
 Files are taken in time order when their names are numbers (``0.05.png 0.1.png 0.15.png``: timestamps as
-names, decimals included), else in *natural* order (``frame2`` before ``frame10``). Opening reads no pixel:
-the image size comes from the PNG/JPEG header of the first file (a full decode only for other formats).
+names, decimals included), else in *natural* order (``frame2`` before ``frame10``). Each frame's time comes
+from what the frame is, never from its position among the frames that happened to be there or readable
+(:func:`frame_times`): a name that is a decimal number is its time in seconds, an integer is a frame number
+(time = number / fps), so a missing number or a file of another kind in the sequence shifts no other frame;
+only names that are not numbers fall back to their place in the sorted list of image files (an image that
+cannot be decoded keeps its place: it is skipped when read). Opening reads no pixel: the image size comes from
+the PNG/JPEG header of the first file (a full decode only for other formats).
 """
 
 from __future__ import annotations
@@ -11,7 +16,7 @@ import math
 import re
 import struct
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -54,6 +59,34 @@ def time_sorted(paths: Iterable[Path]) -> list[Path]:
         order = sorted(range(len(paths)), key=lambda k: (float(numbered[k].group(2)), natural_key(paths[k].name)))
         return [paths[k] for k in order]
     return natural_sorted(paths)
+
+
+def frame_times(paths: Sequence[Path], fps: float) -> tuple[np.ndarray, np.ndarray, str]:
+    """(timestamps (N,) seconds, frame ids (N,), how) of image files in :func:`time_sorted` order, each from
+    what the file is (its name), never from which other files are there.
+
+    - every name one prefix followed by a number, no two numbers equal, one of them with a decimal point
+      (``0.05.png``, ``frame_1305031453.359684.jpg``): the number is the time in seconds ("names as
+      timestamps"); frame ids are the places in the list;
+    - every name one prefix followed by an integer, no two equal (``000123.png``, ``frame-7.jpg``): the number is
+      the frame number, the time ``number / fps`` ("names as frame numbers"), frame ids the numbers;
+    - otherwise (names that are not numbers): the place in the sorted list of image files, which counts the
+      files that cannot be decoded too, at the nominal ``fps`` ("places in natural order").
+    """
+    paths = list(paths)
+    n = len(paths)
+    numbered = [_NUMBERED.match(p.name[: len(p.name) - len(p.suffix)] if p.suffix else p.name) for p in paths]
+    if n and all(m is not None for m in numbered) and len({m.group(1) for m in numbered}) == 1:
+        text = [m.group(2) for m in numbered]
+        if any("." in t for t in text):
+            values = np.array([float(t) for t in text])
+            if len(np.unique(values)) == n:
+                return values, np.arange(n, dtype=np.int64), "names as timestamps"
+        else:
+            numbers = np.array([int(t) for t in text], dtype=np.int64)
+            if len(np.unique(numbers)) == n:
+                return numbers / fps, numbers, "names as frame numbers"
+    return np.arange(n) / fps, np.arange(n, dtype=np.int64), "places in natural order"
 
 
 def has_glob(text: str) -> bool:
@@ -186,10 +219,13 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | str | None = N
             guess**: ``Intrinsics.from_focal(w, h)`` (focal 1.2 x max(w, h), principal point at the centre,
             no distortion) with (w, h) read off the first image, which ``Slam`` replaces by an estimate
             (:mod:`slamkit.stages.self_calibration`).
-        fps: frame rate; timestamps are ``frame index / fps`` seconds (the index before frame skip).
+        fps: frame rate. Each frame's time comes from its name (:func:`frame_times`): a decimal number is
+            its time in seconds (``fps`` unused), an integer its frame number (time = number / ``fps``),
+            other names their place among the folder's image files (time = place / ``fps``, files that cannot
+            be decoded counted). A missing number or a file of another kind shifts no other frame's time.
         pattern: optional glob relative to the folder (``"*.png"``, ``"cam0/*.jpg"``).
         groundtruth: optional TUM-format file (``timestamp tx ty tz qx qy qz qw``, camera-to-world) in the
-            same time base (``index / fps``); each frame takes the pose nearest in time within ``max_dt``
+            frames' time base (above); each frame takes the pose nearest in time within ``max_dt``
             seconds, NaN rows where none. Without it there is no ground truth.
         frame_skip, max_frames: keep every ``frame_skip``-th image, at most ``max_frames``.
     """
@@ -202,7 +238,8 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | str | None = N
     if calib is not None:
         camera = read_camera_txt(calib, w, h)
     cam = resolve_camera(camera, w, h, where=str(files[0]))
-    timestamps = keep / fps
+    times, ids, _ = frame_times(files, fps)
+    timestamps = times[keep]
     gt = None
     if groundtruth is not None:
         gt_t, gt_poses = read_tum_trajectory(groundtruth)
@@ -210,4 +247,4 @@ def open_folder(path: str | Path, *, camera: Intrinsics | float | str | None = N
         gt = np.full((len(keep), 4, 4), np.nan)
         gt[match >= 0] = gt_poses[match[match >= 0]]
     return ImageListSource(name=f"folder/{folder.name}", camera=cam, paths=[files[i] for i in keep],
-                           timestamps=timestamps, frame_ids=keep, gt_poses=gt)
+                           timestamps=timestamps, frame_ids=ids[keep], gt_poses=gt)

@@ -18,7 +18,7 @@ from typing import Callable
 
 from ..camera import Intrinsics
 from ..errors import ConfigError, SourceError, missing_reason
-from .base import FrameSource
+from .base import CAMERA_IN_SPEC, FrameSource
 from .euroc import open_euroc
 from .folder import has_glob, open_folder
 from .kitti import open_kitti
@@ -103,7 +103,7 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
         camera = None
     if text == "default" or text.startswith("synthetic:"):
         if camera is not None:
-            raise ConfigError("camera= cannot be given for synthetic sources (their camera is part of the spec)")
+            raise ConfigError(CAMERA_IN_SPEC)
         _check_kwargs("synthetic", open_synthetic, kw)
         return open_synthetic(text, frame_skip=frame_skip, max_frames=max_frames, **kw)
     m = _PREFIX.match(text) if not isinstance(spec, Path) else None

@@ -126,6 +126,8 @@ class SyntheticSource(FrameSource):
     ``(seed, frame id)``. ``gt_poses`` are the exact poses of the delivered frames.
     """
 
+    camera_in_spec = True
+
     def __init__(self, scene: Scene, poses: np.ndarray, intrinsics: Intrinsics = DEFAULT_CAMERA,
                  fps: float = DEFAULT_FPS, seed: int = 0, *, noise: float = 0.0, frame_skip: int = 1,
                  max_frames: int | None = None, name: str = "synthetic"):
@@ -564,7 +566,9 @@ def open_tum_sequence(folder: str | Path, *, name: str | None = None, frame_skip
 def open_default(*, frame_skip: int = 1, max_frames: int | None = None) -> ImageListSource:
     """The embedded default sequence (rendered into the cache on first use, then read from the JPEGs)."""
     folder = ensure_default_sequence()
-    return open_tum_sequence(folder, name="default", frame_skip=frame_skip, max_frames=max_frames)
+    source = open_tum_sequence(folder, name="default", frame_skip=frame_skip, max_frames=max_frames)
+    source.camera_in_spec = True  # rendered: its camera is part of the spec, as a synthetic: source's
+    return source
 
 
 __all__ = [

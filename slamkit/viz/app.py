@@ -33,7 +33,7 @@ from ..config import SlamConfig
 from ..errors import SlamkitError
 from ..exporter import export
 from ..pipeline import Slam, StepResult
-from ..sources import open_source
+from ..run_camera import open_for_config
 from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
@@ -60,7 +60,8 @@ class SlamApp(AppWidgets):
                  frame_width: int = 400):
         self._sources: dict[str, object] = {}
         self.source_spec = str(source)
-        self.slam = Slam(self._open(self.source_spec), (config or SlamConfig()).validate())
+        config = (config or SlamConfig()).validate()
+        self.slam = Slam(self._open(self.source_spec, config), config)
         self.view = view if view is not None else MapView()
         self._own_view = view is None
         self.frame_width = int(frame_width)
@@ -84,10 +85,14 @@ class SlamApp(AppWidgets):
         self._refresh_all()
 
     # ------------------------------------------------------------------ sources
-    def _open(self, spec: str):
-        if spec not in self._sources:
-            self._sources[spec] = open_source(spec)
-        return self._sources[spec]
+    def _open(self, spec: str, config: SlamConfig | None = None):
+        """The source ``spec``, opened as ``slamkit run`` opens it for ``config`` (its camera numbers applied
+        first, :func:`~slamkit.run_camera.open_for_config`), once per spec and camera."""
+        config = config if config is not None else self.slam.config if hasattr(self, "slam") else SlamConfig()
+        key = (spec, config.camera)
+        if key not in self._sources:
+            self._sources[key] = open_for_config(spec, config)
+        return self._sources[key]
 
     # ------------------------------------------------------------------ widgets
     def _connect(self) -> None:
@@ -309,7 +314,7 @@ class SlamApp(AppWidgets):
         spec = self.w_source.value.strip() or DEFAULT_SOURCE
         if spec != self.source_spec:
             callbacks = self.slam.callbacks
-            self.slam = Slam(self._open(spec), config, callbacks=callbacks)
+            self.slam = Slam(self._open(spec, config), config, callbacks=callbacks)
             self.source_spec = spec
         else:
             self.slam.reset(config)
