@@ -65,3 +65,25 @@ def test_flow_scores_follow_the_keyframe_rule():
         if i < len(fs.frame_indices):
             assert fs.references[i] == k and fs.scores[i] < fs.threshold
     assert np.all(fs.scores[fs.due] > fs.threshold)
+
+
+def test_describe_focal_prints_the_runs_interval_and_whether_it_covers_the_truth():
+    """The ± of a focal estimate is the same two standard deviations as the run's camera line (the notebook showed
+    "within 1.0 %" of one sd beside the run's "± 2.0 %"), the bootstrap spread inside it is named, and whether the
+    ± covers the true focal length is said, never assumed; a weak estimate gets no ±, a missing one says so."""
+    import math
+
+    from slamkit.stages.self_calibration import COVERAGE, MODEL_ERROR, FocalEstimate
+
+    spread = 0.004
+    est = FocalEstimate(322.24, math.hypot(spread, MODEL_ERROR), 120, 60, False)
+    text = lessons.describe_focal(est, 320.0)
+    assert f"± {100 * COVERAGE * est.uncertainty:.1f} %" in text and est.interval == COVERAGE * est.uncertainty
+    assert f"bootstrap spread {100 * spread:.1f} %" in text
+    assert "the error is +0.7 % (true f = 320 px), inside the ±" in text  # 0.7 % < 2 sd = 2.2 %
+    far = FocalEstimate(340.0, math.hypot(spread, MODEL_ERROR), 120, 60, False)
+    assert "the error is +6.2 %" in lessons.describe_focal(far, 320.0) and "outside the ±" in lessons.describe_focal(far, 320.0)
+    weak = FocalEstimate(300.0, 0.3, 4, 20, True, "the frame pairs disagree")
+    assert "±" not in lessons.describe_focal(weak, 320.0) and "weak" in lessons.describe_focal(weak, 320.0)
+    none = FocalEstimate(float("nan"), math.inf, 0, 40, True, "the optical axes meet in all 12 frame pairs")
+    assert lessons.describe_focal(none, 320.0).startswith("no estimate (the optical axes meet")

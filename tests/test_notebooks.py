@@ -60,6 +60,37 @@ def _outputs(nb) -> tuple[str, str]:
     return stream, plain
 
 
+def drawn_fraction(png: str) -> float:
+    """The share of a base64 PNG's pixels that are coloured (not white, not grey): 0 for an empty picture."""
+    import base64
+    import io
+
+    import numpy as np
+    from PIL import Image as PILImage
+
+    rgb = np.asarray(PILImage.open(io.BytesIO(base64.b64decode(png))).convert("RGB"), np.int16)
+    return float(((rgb.max(axis=2) - rgb.min(axis=2)) > 40).mean())
+
+
+def check_views_have_pictures(nb) -> int:
+    """Every 3D view (a live meshcat view or a frozen one) is followed by a PNG picture of the map with something
+    drawn in it, then the line saying the interactive view needs a trusted notebook: a notebook opened untrusted
+    drops the view's HTML (object, iframe) but shows the PNG. Returns how many views were found."""
+    views = 0
+    for cell in nb.cells:
+        outs = cell.get("outputs", []) if cell.cell_type == "code" else []
+        for i, o in enumerate(outs):
+            html = o.get("data", {}).get("text/html", "")
+            if 'class="slamkit-map"' not in html and 'class="slamkit-snapshot"' not in html:
+                continue
+            views += 1
+            picture, hint = (outs[i + 1:i + 3] + [{}, {}])[:2]
+            assert "image/png" in picture.get("data", {}), (cell.source[:200], [list(x.get("data", {})) for x in outs])
+            assert drawn_fraction(picture["data"]["image/png"]) > 0.01, cell.source[:200]  # a map, not "no map yet"
+            assert "Trust Notebook" in hint.get("data", {}).get("text/plain", ""), cell.source[:200]
+    return views
+
+
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.stem for p in NOTEBOOKS])
 def test_notebook_runs(path: Path, tmp_path: Path):
     nb = nbformat.read(path, as_version=4)
@@ -77,6 +108,8 @@ def test_notebook_runs(path: Path, tmp_path: Path):
     for bad in ("<span", "<div", "ViewSettings(", "KEYFRAME ()", "matches=0 inliers=0"):
         assert bad not in text and bad not in plain, bad
     pngs = sum("image/png" in o.get("data", {}) for c in nb.cells for o in c.get("outputs", []))
+    views = check_views_have_pictures(nb)
+    assert views == {"01_quickstart": 1, "02_step_through": 2}.get(path.stem, 0), views  # 02: the loop and kept map
     if path.stem in ("01_quickstart", "02_step_through"):
         assert (tmp_path / "out" / "trajectory_tum.txt").is_file() and (tmp_path / "out" / "sparse").is_dir()
         page = (tmp_path / "out" / "map.html").read_text()

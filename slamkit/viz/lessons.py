@@ -448,17 +448,24 @@ def plot_loop_correction(ax, lc: LoopCorrection, unit: str = "m") -> None:
 
 def describe_focal(estimate, true_focal: float | None = None) -> str:
     """One line for a focal-length estimate (``stages.self_calibration.FocalEstimate``) that claims no more
-    than it knows: a weak estimate gets no ± (it is not a measurement); otherwise the bootstrap spread is
-    named for what it is — how closely the frame pairs agree, not the error — beside the error against
-    ``true_focal`` (pixels) when it is known."""
+    than it knows: a weak estimate gets no ± (it is not a measurement); otherwise the same ± as the run's camera
+    line (``FocalEstimate.interval``: two standard deviations), with the bootstrap spread it contains named for
+    what it is (how closely the frame pairs agree), beside the error against ``true_focal`` (pixels) when it is
+    known and whether the ± covers it."""
     if not math.isfinite(estimate.focal):
         return f"no estimate ({estimate.reason or 'no usable frame pair'})"
     head = f"f = {estimate.focal:.1f} px from {estimate.num_pairs} frame pairs"
     if estimate.weak:
         return f"{head} — weak, not a measurement: {estimate.reason or 'the frames barely constrain it'}"
-    text = f"{head}; the pairs agree within {100 * estimate.uncertainty:.1f} % (bootstrap spread, not the error)"
+    from ..stages.self_calibration import MODEL_ERROR
+
+    spread = math.sqrt(max(estimate.uncertainty ** 2 - MODEL_ERROR ** 2, 0.0))  # uncertainty = hypot(spread, model)
+    text = (f"{head} ± {100 * estimate.interval:.1f} % (two standard deviations: the pairs' bootstrap spread "
+            f"{100 * spread:.1f} % with the {100 * MODEL_ERROR:g} % that resampling cannot show)")
     if true_focal:
-        text += f"; the error is {100 * (estimate.focal / true_focal - 1):+.1f} % (true f = {true_focal:g} px)"
+        err = estimate.focal / true_focal - 1
+        text += (f"; the error is {100 * err:+.1f} % (true f = {true_focal:g} px), "
+                 + ("inside" if abs(err) <= estimate.interval else "outside") + " the ±")
     return text
 
 
