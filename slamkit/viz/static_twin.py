@@ -266,6 +266,11 @@ class StaticTwin:
         png, text = self._bundles()
         self._handles.append((display(png, raw=True, display_id=True), display(text, raw=True, display_id=True)))
 
+    def detach(self) -> None:
+        """Stop updating the twin outputs shown so far: they keep the state they show now (the app was displayed
+        again further down, where :meth:`show` starts new ones)."""
+        self._handles.clear()
+
     def refresh(self, force: bool = False) -> bool:
         """Redraw every shown twin if the app changed (and ``min_interval`` has passed, unless ``force``)."""
         if not self._handles or not self.dirty or (not force and time.monotonic() - self._drawn_at < self.min_interval):
