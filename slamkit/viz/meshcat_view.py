@@ -200,8 +200,8 @@ class MapView:
         (the viewer's camera is set again then, so an orbit made by hand is undone)."""
         self.closed = False
         self._map = ShownMap()
-        self._outputs: list[tuple[Any, int]] = []
-        """(display handle, height) of every live view :meth:`display` showed."""
+        self._outputs: list[tuple[Any, Any, int]] = []
+        """(display handles of the view and of its picture, height) of every live view :meth:`display` showed."""
         self._out.send_scene_settings(self.settings)
 
     # ------------------------------------------------------------------ lifecycle
@@ -237,8 +237,7 @@ class MapView:
         inner = (snapshot_iframe(self.static_html(legend=False), "100%", height, lazy=True) if snapshot else
                  f'<div class="slamkit-no-kernel" style="padding:2em;font:13px sans-serif;color:#555">'
                  f'{html.escape(NO_KERNEL_TEXT)}</div>')
-        # the height is the <object>'s, not the box's: a notebook opened untrusted strips the object (and the
-        # snapshot's iframe) from the output, and the box then collapses instead of standing empty
+        # the height is the object's: an untrusted notebook strips object and iframe, and the box collapses
         box = (f'<div class="slamkit-map-box" style="width:{width}px;max-width:100%;position:relative">'
                f'<object class="slamkit-map" type="text/html" data="{self.url}" '
                f'style="display:block;width:100%;height:{int(height)}px;border:none">{inner}</object></div>')
@@ -263,53 +262,34 @@ class MapView:
             items.append("loops")
         return items
 
-    def picture(self, height: int = 480, title: str | None = None) -> dict:
-        """The map as the viewer shows it from its camera, drawn as a PNG (:func:`static_twin.map_picture`):
-        a display bundle (``image/png`` and a plain-text line) that every notebook front end shows, trusted or
-        not, with a kernel or without one."""
-        from .static_twin import map_picture
-
-        return {"image/png": map_picture(self, height, title),
-                "text/plain": "the 3D view as a picture (the same map from the same camera)"}
-
-    def _show_outputs(self, view_html: str, height: int, title: str | None = None):
-        """Display the 3D view's HTML, its picture and the trust line; the display handles of the first two."""
-        from IPython.display import display
-
-        from .static_twin import TRUST_HINT
-
-        view = display(HTML(view_html), display_id=True)
-        pic = display(self.picture(height, title), raw=True, display_id=True)
-        display({"text/markdown": TRUST_HINT, "text/plain": TRUST_HINT}, raw=True)
-        return view, pic
-
     def display(self, height: int = 480) -> None:
-        """Show the live viewer in the notebook, then the same map as a picture (a PNG output, which a notebook
-        opened untrusted, without its kernel, on a notebook viewer or converted by nbconvert still shows) and one
-        line on what the live view needs. :meth:`keep_snapshot` updates both."""
-        view, pic = self._show_outputs(self.iframe_html(height), height)
-        self._outputs.append((view, int(height), pic))
+        """Show the live viewer, then the same map as a picture (a PNG: shown untrusted, without a kernel, on a
+        viewer, by nbconvert) and a line on what the live view needs; :meth:`keep_snapshot` updates both."""
+        from .static_twin import show_with_picture
+
+        self._outputs.append((*show_with_picture(self, self.iframe_html(height), height), int(height)))
 
     def keep_snapshot(self) -> int:
-        """Store the current scene in every output :meth:`display` made, as the frozen 3D view a saved trusted
-        notebook shows without a kernel (the live view stays live while the kernel runs; its page reloads
-        once), and redraw their pictures. Call it when the map is final, e.g. after ``slam.run()``; returns the
-        outputs updated."""
-        for handle, height, pic in self._outputs:
+        """Store the current scene frozen in every view :meth:`display` made (a trusted notebook shows it without
+        a kernel; the live view stays live, its page reloads once) and redraw their pictures. Call it when the
+        map is final, e.g. after ``slam.run()``; returns the outputs updated."""
+        from .static_twin import picture_bundle
+
+        for handle, pic, height in self._outputs:
             handle.update(HTML(self.iframe_html(height, snapshot=True)))
-            pic.update(self.picture(height), raw=True)
+            pic.update(picture_bundle(self, height), raw=True)
         return len(self._outputs)
 
     def snapshot_html(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> str:
-        """The current scene frozen in an ``<iframe srcdoc>`` (:meth:`static_html`, legend included):
-        needs no server and no kernel."""
+        """The current scene frozen in an ``<iframe srcdoc>`` (:meth:`static_html`, legend): no server, no kernel."""
         return snapshot_iframe(self.static_html(title, caption), f"{int(round(height * self.aspect))}px", height)
 
     def snapshot(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> None:
-        """Display :meth:`snapshot_html` (in a ``<div>``, which IPython shows without its "use IFrame"
-        warning), then the same map as a picture (:meth:`picture`) and the line on what the 3D view needs: a
-        notebook opened untrusted drops the frozen view's iframe but shows the picture."""
-        self._show_outputs(f"<div>{self.snapshot_html(height, title, caption)}</div>", height)
+        """Display :meth:`snapshot_html` (in a ``<div>``: IPython's "use IFrame" warning stays away), then the same
+        map as a picture and the trust line (an untrusted notebook drops the iframe, shows the picture)."""
+        from .static_twin import show_with_picture
+
+        show_with_picture(self, f"<div>{self.snapshot_html(height, title, caption)}</div>", height)
 
     def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None, legend: bool = True) -> str:
         """The current scene as one self-contained HTML page (the viewer's JavaScript included), titled

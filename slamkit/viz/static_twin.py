@@ -198,6 +198,24 @@ def map_picture(view: "MapView", height: int = 420, title: str | None = None) ->
     return buf.getvalue()
 
 
+def picture_bundle(view: "MapView", height: int = 480, title: str | None = None) -> dict:
+    """:func:`map_picture` as a display bundle (``image/png`` and a plain-text line) that every notebook front end
+    shows, trusted or not, with a kernel or without one."""
+    return {"image/png": map_picture(view, height, title),
+            "text/plain": "the 3D view as a picture (the same map from the same camera)"}
+
+
+def show_with_picture(view: "MapView", view_html: str, height: int):
+    """Display a 3D view's HTML (live or frozen), its picture (:func:`picture_bundle`) and :data:`TRUST_HINT`;
+    the display handles of the first two (to update them)."""
+    from IPython.display import HTML, display
+
+    shown = display(HTML(view_html), display_id=True)
+    pic = display(picture_bundle(view, height), raw=True, display_id=True)
+    display({"text/markdown": TRUST_HINT, "text/plain": TRUST_HINT}, raw=True)
+    return shown, pic
+
+
 def app_picture(app: "SlamApp") -> bytes:
     """PNG bytes: the app's map seen from above and its frame panel (the current frame with its flow lines),
     each with a title that says what it is."""
@@ -282,5 +300,5 @@ class StaticTwin:
         return True
 
 
-__all__ = ["StaticTwin", "TRUST_HINT", "app_picture", "app_text", "draw_map_from_above", "draw_map_from_camera",
+__all__ = ["StaticTwin", "TRUST_HINT", "app_picture", "picture_bundle", "show_with_picture", "app_text", "draw_map_from_above", "draw_map_from_camera",
            "map_picture"]
