@@ -191,6 +191,18 @@ def check_outputs(stem: str, nb, out: Path) -> None:
         rows = {r[0]: r[1:] for r in found}
         assert set(rows) == {"colmap", "local"}, table.outputs  # keyframes and points printed as integers
         assert all(float(r[0]) > 90 for r in rows.values()), rows
+        # the reading's claims: every frame posed, ATEs within a millimetre, local mapping's map smaller; at every
+        # keyframe hundreds of points created, recent ones culled and duplicates fused, covisible keyframes growing
+        # up to 15
+        assert all(float(r[0]) == 100.0 for r in rows.values()), rows
+        assert abs(float(rows["colmap"][3]) - float(rows["local"][3])) < 0.1, rows
+        assert int(rows["local"][1]) <= int(rows["colmap"][1]) and int(rows["local"][2]) < int(rows["colmap"][2])
+        mapping = next(c for c in nb.cells if c.cell_type == "code" and "per_keyframe.append" in c.source)
+        per_kf = table_rows(mapping.outputs[-1]["data"]["text/plain"])  # created, culled, fused, obs., covisible, ..
+        assert len(per_kf) >= 5 and all(r[0] >= 100 for r in per_kf), per_kf
+        assert sum(r[1] > 0 for r in per_kf) >= len(per_kf) - 1 and sum(r[2] > 0 for r in per_kf) >= len(per_kf) - 1
+        covisible = [r[4] for r in per_kf]
+        assert covisible == sorted(covisible) and max(covisible) <= 15, covisible
         # Run All ends on a populated app: the last cell ran the new settings to the end
         n_before, n_after = (int(v) for v in re.findall(r"0\.0[58]: (\d+)", text.split("keyframes with")[-1]))
         assert n_after >= 2 and "showing the saved run" in text
