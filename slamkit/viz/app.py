@@ -253,7 +253,8 @@ class SlamApp(AppWidgets):
 
         out = []
         left = len(self.slam) - len(self.slam.records)
-        bar = progress_bar(left if max_steps is None else min(left, max_steps), "frame", "app.run") if progress else None
+        todo = left if max_steps is None else min(left, max_steps)
+        bar = progress_bar(todo, "frame", "app.run") if progress and todo > 0 else None
         while not self.slam.done and (max_steps is None or len(out) < max_steps):
             out.append(self.step())
             if bar is not None:
