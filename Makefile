@@ -10,9 +10,12 @@ $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[test]"
-	@# JupyterLab saves the widgets' state with a notebook: a saved notebook shows the app without a kernel
+	@# JupyterLab saves no widget state with a notebook: reopened without its kernel, the app's place shows its
+	@# picture and status (plain outputs), not ~60 controls that cannot work (README, "What a saved notebook keeps")
 	mkdir -p $(VENV)/share/jupyter/lab/settings
-	echo '{"@jupyter-widgets/jupyterlab-manager:plugin": {"saveState": true}}' > $(VENV)/share/jupyter/lab/settings/overrides.json
+	echo '{"@jupyter-widgets/jupyterlab-manager:plugin": {"saveState": false}}' > $(VENV)/share/jupyter/lab/settings/overrides.json
+	@# the numba kernels compiled once here (cached beside the sources), not silently in the first run
+	$(PY) -m slamkit.warmup
 	touch $@
 
 install: $(VENV)/.installed

@@ -10,9 +10,12 @@ bundle adjustment moved it) and inside the view, that the newest frames stay ins
 goes (paused mid-run: the view follows the camera) with the legend under the viewer, not over it, that the
 legend lists only what is drawn, that the map's projected 5-95 % box covers at least half of the viewer with
 the camera the app set, and compares screenshots of the 3D view before and after the run. No output may
-show raw HTML text. Then the saved notebook: reopened without a kernel, converted offline, and saved again
-the way JupyterLab's autosave does it (no widget state) and reopened: the app's static twin (its picture and
-status text, with the final counts) is still there, and no maths shows as raw LaTeX.
+show raw HTML text. Then the saved notebook (no widget state: `make lab`'s setting): opened by another server
+from a fresh trust store (untrusted), then trusted; reopened without a kernel; converted offline; saved again
+and reopened. In every cell with a 3D view or the app a picture is drawn, no image is broken, no 3D box stands
+empty, no dead control is shown (the app's live place says once that its model is gone, then shows its picture
+and status text with the final counts), and no maths shows as raw LaTeX. A second test does the same for
+``01_quickstart`` executed headless.
 
 Skipped, with the reason, when chromium (``/usr/bin/chromium``), Playwright (Python) or JupyterLab is not
 installed. Screenshots go to the test's temporary folder (and to ``$SLAMKIT_SCREENSHOTS`` when set).
@@ -63,6 +66,51 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _start_lab(tmp_path: Path, work: Path, data: str = "data") -> dict:
+    """JupyterLab on a free loopback port serving ``work``, with an isolated config and data folder (``data``: a
+    fresh one is a fresh trust store, where no notebook is trusted), widget state not saved (as `make lab`
+    configures it) and every cell rendered (no windowing, so every output can be inspected)."""
+    env = dict(os.environ, JUPYTER_CONFIG_DIR=str(tmp_path / "config"), JUPYTER_DATA_DIR=str(tmp_path / data),
+               JUPYTERLAB_SETTINGS_DIR=str(tmp_path / "config" / "lab" / "user-settings"),
+               JUPYTERLAB_WORKSPACES_DIR=str(tmp_path / "workspaces"), JUPYTER_RUNTIME_DIR=str(tmp_path / "runtime"))
+    jupyter = [sys.executable, "-m", "jupyter"]
+    subprocess.run(jupyter + ["labextension", "disable", "--level=user",
+                              "@jupyterlab/apputils-extension:announcements"], env=env, check=True,
+                   capture_output=True)
+    settings = Path(env["JUPYTERLAB_SETTINGS_DIR"])
+    for plugin, value in (("@jupyter-widgets/jupyterlab-manager/plugin", '{"saveState": false}'),
+                          ("@jupyterlab/notebook-extension/tracker", '{"windowingMode": "none"}')):
+        (settings / f"{plugin}.jupyterlab-settings").parent.mkdir(parents=True, exist_ok=True)
+        (settings / f"{plugin}.jupyterlab-settings").write_text(value)
+    port = _free_port()
+    log = open(tmp_path / "jupyter.log", "a")
+    proc = subprocess.Popen(jupyter + ["lab", "--no-browser", f"--port={port}", "--ip=127.0.0.1", "--allow-root",
+                                       "--IdentityProvider.token=", "--ServerApp.password=",
+                                       "--LabApp.expose_app_in_browser=True", f"--ServerApp.root_dir={work}"],
+                            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=work)
+    url = f"http://127.0.0.1:{port}"
+    lab = dict(url=url, proc=proc, log=log, tmp=tmp_path, work=work, env=env, before=meshcat_servers())
+    deadline = time.monotonic() + 90
+    while True:
+        try:
+            urllib.request.urlopen(f"{url}/api/status", timeout=5)
+            return lab
+        except OSError:
+            if proc.poll() is not None or time.monotonic() > deadline:
+                _stop_lab(lab)
+                raise RuntimeError("jupyter lab did not start: " + (tmp_path / "jupyter.log").read_text()[-2000:])
+            time.sleep(0.5)
+
+
+def _stop_lab(lab: dict) -> None:
+    lab["proc"].send_signal(signal.SIGTERM)  # kernels shut down cleanly; their meshcat servers exit
+    try:
+        lab["proc"].wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        lab["proc"].kill()
+    lab["log"].close()
+
+
 @pytest.fixture
 def lab(tmp_path):
     """JupyterLab on 127.0.0.1 with an isolated config and a copy of the notebook (parameters injected)."""
@@ -75,43 +123,12 @@ def lab(tmp_path):
     cell.metadata["tags"] = ["injected-parameters"]
     nb.cells.insert(idx + 1, cell)
     nbformat.write(nb, work / NOTEBOOK.name)
-    env = dict(os.environ, JUPYTER_CONFIG_DIR=str(tmp_path / "config"),
-               JUPYTERLAB_SETTINGS_DIR=str(tmp_path / "config" / "lab" / "user-settings"),
-               JUPYTERLAB_WORKSPACES_DIR=str(tmp_path / "workspaces"), JUPYTER_RUNTIME_DIR=str(tmp_path / "runtime"))
-    jupyter = [sys.executable, "-m", "jupyter"]
-    subprocess.run(jupyter + ["labextension", "disable", "--level=user",
-                              "@jupyterlab/apputils-extension:announcements"], env=env, check=True,
-                   capture_output=True)
-    # widget state saved with the notebook, as `make lab` configures it (the app reopens without a kernel)
-    widget_settings = Path(env["JUPYTERLAB_SETTINGS_DIR"]) / "@jupyter-widgets" / "jupyterlab-manager"
-    widget_settings.mkdir(parents=True, exist_ok=True)
-    (widget_settings / "plugin.jupyterlab-settings").write_text('{"saveState": true}')
-    port = _free_port()
     before = meshcat_servers()
-    log = open(tmp_path / "jupyter.log", "w")
-    proc = subprocess.Popen(jupyter + ["lab", "--no-browser", f"--port={port}", "--ip=127.0.0.1", "--allow-root",
-                                       "--IdentityProvider.token=", "--ServerApp.password=",
-                                       "--LabApp.expose_app_in_browser=True", f"--ServerApp.root_dir={work}"],
-                            env=env, stdout=log, stderr=subprocess.STDOUT, cwd=work)
-    url = f"http://127.0.0.1:{port}"
+    lab = _start_lab(tmp_path, work)
     try:
-        deadline = time.monotonic() + 90
-        while True:
-            try:
-                urllib.request.urlopen(f"{url}/api/status", timeout=5)
-                break
-            except OSError:
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    raise RuntimeError("jupyter lab did not start: " + (tmp_path / "jupyter.log").read_text()[-2000:])
-                time.sleep(0.5)
-        yield dict(url=url, proc=proc, tmp=tmp_path, before=before, work=work, env=env)
+        yield lab
     finally:
-        proc.send_signal(signal.SIGTERM)  # kernels shut down cleanly; their meshcat servers exit
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        log.close()
+        _stop_lab(lab)
     deadline = time.monotonic() + 15
     while (meshcat_servers() - before) and time.monotonic() < deadline:
         time.sleep(0.3)
@@ -236,11 +253,14 @@ def _live_viewer(page):
 
 
 def _save_and_stop_kernel(page, lab) -> Path:
-    """Save the notebook from JupyterLab (widget state included) and shut its kernel down; the saved file."""
+    """Save the notebook from JupyterLab (no widget state: `make lab`'s setting) and shut its kernel down; the
+    saved file."""
     path = lab["work"] / NOTEBOOK.name
     mtime = path.stat().st_mtime
     page.evaluate("() => window.jupyterapp.commands.execute('docmanager:save')")
-    _wait(lambda: path.stat().st_mtime > mtime and "widget-state" in path.read_text(), 60, "the notebook saved")
+    _wait(lambda: path.stat().st_mtime > mtime, 60, "the notebook saved")
+    time.sleep(1.0)  # the file is complete
+    assert "widget-state" not in path.read_text(), "widget state saved: the app would reopen as dead controls"
     page.evaluate("() => window.jupyterapp.serviceManager.sessions.shutdownAll()")
     _wait(lambda: not (meshcat_servers() - lab["before"]), 30, "the kernel's meshcat servers to stop")
     return path
@@ -266,9 +286,22 @@ def _snapshot_scenes(page, min_views: int) -> list[dict]:
 def _check_saved_without_kernel(browser, page, lab, saved: Path, final: dict) -> None:
     """The saved notebook with no kernel: as ``nbconvert --to html`` in chromium from file://, and reopened in
     JupyterLab. No view may be an error page or empty: each live view shows its frozen map (or says it needs
-    the kernel), the frozen maps hold points and keyframes, the app comes back from its saved widget state."""
+    the kernel), the frozen maps hold points and keyframes; the app, saved without widget state, comes back as
+    its picture and status (:func:`_check_cells`), with no dead controls."""
     nb = nbformat.read(saved, as_version=4)
-    assert "application/vnd.jupyter.widget-state+json" in nb.metadata.get("widgets", {}), "no widget state saved"
+    assert "application/vnd.jupyter.widget-state+json" not in nb.metadata.get("widgets", {}), "widget state saved"
+    # JupyterLab, reopened (the notebook trusted: it was run here): the maps frozen in the outputs, the app as
+    # its picture and status
+    page.reload()
+    page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget", timeout=90_000)
+    page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
+    time.sleep(2.0)
+    cells = _check_cells(page, saved, trusted=True, tag="reopened")
+    scenes = _snapshot_scenes(page, 2)
+    assert all(sc["points"] > 100 and sc["frustums"] >= 3 for sc in scenes), scenes
+    # the app as it was when saved (after the clicks above), in its status text under its live place
+    assert page.get_by_text(f"keyframes {final['keyframes']} · points {final['points']}").count() >= 1, final
+    print("reopened in JupyterLab, frozen maps:", scenes, "cells:", cells)
     out = lab["tmp"] / "html"
     subprocess.run([sys.executable, "-m", "jupyter", "nbconvert", "--to", "html", str(saved), "--output-dir",
                     str(out)], check=True, capture_output=True, env=lab["env"])
@@ -282,20 +315,6 @@ def _check_saved_without_kernel(browser, page, lab, saved: Path, final: dict) ->
         print("nbconvert html, frozen maps:", scenes)
     finally:
         static.close()
-    # JupyterLab, reopened: the widgets from their saved state, the maps frozen in the outputs
-    page.reload()
-    page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget", timeout=90_000)
-    page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
-    time.sleep(2.0)
-    assert page.get_by_text("Error displaying widget").count() == 0
-    app_map = page.locator(".slamkit-map-view iframe.slamkit-snapshot").first
-    app_map.wait_for(timeout=60_000)
-    scenes = _snapshot_scenes(page, 3)
-    assert all(sc["points"] > 100 and sc["frustums"] >= 3 for sc in scenes), scenes
-    assert any(sc["points"] == final["points"] and sc["frustums"] == final["keyframes"] for sc in scenes), (
-        scenes, final)  # the app's map as it was when saved
-    _shot(page, app_map, lab["tmp"] / "reopened_app_map.png")
-    print("reopened in JupyterLab, frozen maps:", scenes)
 
 
 TWIN_JS = """() => Array.from(document.querySelectorAll('.jp-OutputArea-output img, .output_png img, img'))
@@ -305,10 +324,10 @@ TWIN_JS = """() => Array.from(document.querySelectorAll('.jp-OutputArea-output i
 
 
 def _check_autosave_cycle(browser, page, lab, saved: Path, final: dict) -> None:
-    """What JupyterLab's autosave does to a notebook reopened without a kernel: it writes it again without
-    the widget state. Saved that way and reopened once more (and converted offline with nbconvert), the
-    app's static twin — a picture of the map and the frame panel, and the status text with the final
-    counts — is still there, with no widget state at all; and no maths is left as raw LaTeX."""
+    """The notebook reopened without a kernel and saved again (what autosave writes: the same file as Ctrl+S),
+    then reopened once more and converted offline with nbconvert: the app's static twin — a picture of the map
+    and the frame panel, and the status text with the final counts — is still there, with no widget state at
+    all; and no maths is left as raw LaTeX."""
     mtime = saved.stat().st_mtime
     page.evaluate("() => window.jupyterapp.commands.execute('docmanager:save')")
     _wait(lambda: saved.stat().st_mtime > mtime, 60, "the notebook saved again without a kernel")
@@ -317,7 +336,7 @@ def _check_autosave_cycle(browser, page, lab, saved: Path, final: dict) -> None:
     print("widget models after the autosave-like save:", len(state.get("state", {})))
     nb.metadata.pop("widgets", None)  # what autosave leaves, whatever this JupyterLab kept
     nbformat.write(nb, saved)
-    app_cell = next(c for c in nb.cells if c.cell_type == "code" and c.source.strip().endswith("\napp"))
+    app_cell = next(c for c in nb.cells if c.cell_type == "code" and "app.reset()" in c.source)  # its live place
     kinds = [set(o.get("data", {})) for o in app_cell.outputs]
     assert any("image/png" in k for k in kinds), kinds
     status = "\n".join(o["data"]["text/plain"] for o in app_cell.outputs
@@ -352,6 +371,94 @@ def _check_autosave_cycle(browser, page, lab, saved: Path, final: dict) -> None:
         _keep_screenshot(lab["tmp"] / "autosaved_nbconvert.png")
     finally:
         static.close()
+
+
+CELLS_JS = """() => Array.from(document.querySelectorAll('.jp-Notebook .jp-Cell.jp-CodeCell')).map(c => {
+    const imgs = Array.from(c.querySelectorAll('.jp-OutputArea-output img'));
+    return {png: imgs.filter(i => i.src.startsWith('data:image/png') && i.naturalWidth > 0).length,
+            broken: imgs.filter(i => i.complete && i.naturalWidth === 0).length,
+            frozen: c.querySelectorAll('iframe.slamkit-snapshot').length,
+            empty_boxes: Array.from(c.querySelectorAll('.slamkit-map-box')).filter(b =>
+                b.getBoundingClientRect().height > 40 && !b.querySelector('object, iframe')).length,
+            widget_errors: (c.innerText.match(/Error displaying widget/g) || []).length,
+            controls: c.querySelectorAll('.widget-button, .widget-slider, .widget-dropdown').length,
+            text: c.innerText};
+})"""
+"""Per code cell as the page shows it: PNG pictures, broken images, frozen 3D views, 3D boxes standing empty,
+widget errors, widget controls and the text."""
+
+
+def _check_cells(page, saved: Path, trusted: bool, tag: str) -> list[dict]:
+    """Every cell of the notebook open in ``page`` (the file ``saved``) with a 3D view or the app shows a
+    picture (a PNG drawn), no broken image and no empty 3D box; a 3D view has the line on trusting the
+    notebook and, ``trusted``, its frozen 3D view too; the app shows no controls (there is no kernel to run
+    them) and at most its one "model not found" line at its live place. Returns what each such cell shows."""
+    nb = nbformat.read(saved, as_version=4)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    _wait(lambda: page.locator(".jp-Notebook .jp-Cell").count() == len(nb.cells), 60, "every cell on the page")
+    for k in range(len(nb.cells)):  # JupyterLab renders a long notebook's outputs as they come into view
+        page.locator(".jp-Notebook .jp-Cell").nth(k).scroll_into_view_if_needed()
+        time.sleep(0.2)
+    shown, previous = None, None
+    for _ in range(30):  # until what is shown stops changing (multi-megabyte outputs take seconds)
+        shown = page.evaluate(CELLS_JS)
+        counts = [(c["png"], c["frozen"], c["widget_errors"]) for c in shown]
+        if counts == previous and len(shown) == len(code):
+            break
+        previous = counts
+        time.sleep(2.0)
+    assert len(shown) == len(code), (len(shown), len(code))
+    page.screenshot(path=str(saved.parent / f"{saved.stem}-{tag}.png"))
+    _keep_screenshot(saved.parent / f"{saved.stem}-{tag}.png")
+    found = []
+    for cell, seen in zip(code, shown):
+        html = "".join(o.get("data", {}).get("text/html", "") for o in cell.outputs)
+        view = 'class="slamkit-map"' in html or 'class="slamkit-snapshot"' in html
+        live_app = any("application/vnd.jupyter.widget-view+json" in o.get("data", {}) for o in cell.outputs)
+        moved_app = any("The app moved" in o.get("data", {}).get("text/plain", "") for o in cell.outputs)
+        assert seen["broken"] == 0 and seen["empty_boxes"] == 0, (tag, cell.source[:80], seen)
+        if not (view or live_app or moved_app):
+            continue
+        info = {k: v for k, v in seen.items() if k != "text"} | {"cell": cell.source.splitlines()[0][:40]}
+        found.append(info)
+        assert seen["png"] >= 1, (tag, info)  # the map (or the app) as a picture
+        assert seen["controls"] == 0 and seen["widget_errors"] <= int(live_app), (tag, info)
+        if view:
+            assert "Trust Notebook" in seen["text"], (tag, info)
+            assert (seen["frozen"] >= 1) == trusted, (tag, info)  # untrusted: the iframe is dropped
+        if live_app or moved_app:
+            assert "status:" in seen["text"] and "frames " in seen["text"], (tag, info)
+    assert found, "no cell with a 3D view or the app"
+    print(tag, found)
+    return found
+
+
+def _check_untrusted_after_restart(browser, lab, saved: Path) -> dict:
+    """The saved notebook opened by another JupyterLab server (a restart: no kernel of the run is left) with a
+    fresh trust store (untrusted, as a notebook someone else ran), then trusted with ``jupyter trust`` and
+    opened again."""
+    work = lab["tmp"] / "work-reopened"
+    work.mkdir()
+    saved = Path(shutil.copy(saved, work / saved.name))
+    other = _start_lab(lab["tmp"], work, data="data-fresh")
+    page = browser.new_page(viewport={"width": 1500, "height": 1100})
+    try:
+        page.goto(f"{other['url']}/lab/tree/{saved.name}")
+        page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget", timeout=90_000)
+        page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
+        time.sleep(3.0)
+        untrusted = _check_cells(page, saved, trusted=False, tag="untrusted")
+        subprocess.run([sys.executable, "-m", "jupyter", "trust", str(saved)], check=True, capture_output=True,
+                       env=other["env"])
+        page.reload()
+        page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget", timeout=90_000)
+        page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
+        time.sleep(3.0)
+        trusted = _check_cells(page, saved, trusted=True, tag="trusted")
+    finally:
+        page.close()
+        _stop_lab(other)
+    return {"untrusted": untrusted, "trusted": trusted}
 
 
 def _keep_screenshot(path: Path) -> None:
@@ -523,7 +630,61 @@ def test_step_through_notebook_in_chromium(lab):
 
             # --- Save, stop the kernel, reopen: every 3D view shows a map, the app its widgets
             saved = _save_and_stop_kernel(page, lab)
+            _check_untrusted_after_restart(browser, lab, saved)
             _check_saved_without_kernel(browser, page, lab, saved, s)
             _check_autosave_cycle(browser, page, lab, saved, s)
         finally:
             browser.close()
+
+
+def test_quickstart_executed_opens_untrusted_and_after_a_restart(tmp_path):
+    """01_quickstart executed headless (a short run), as a notebook mailed to a classmate: opened in JupyterLab from
+    a fresh trust store (untrusted: its 3D view's HTML is dropped), every 3D view still shows the map as a picture
+    with the line on trusting the notebook, no broken image, no empty box; trusted with ``jupyter trust`` and
+    opened again after a server restart, the frozen 3D view is there too."""
+    nbclient = pytest.importorskip("nbclient")
+    from test_notebooks import FAST, inject_parameters
+
+    work = tmp_path / "work"
+    work.mkdir()
+    path = NOTEBOOK.parent / "01_quickstart.ipynb"
+    nb = nbformat.read(path, as_version=4)
+    inject_parameters(nb, dict(FAST, out_dir=str(tmp_path / "out")))
+    nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
+                            resources={"metadata": {"path": str(work)}}).execute()
+    saved = work / path.name
+    nbformat.write(nb, saved)
+    before = meshcat_servers()
+    lab = _start_lab(tmp_path, work)
+    try:
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS, headless=True)
+            try:
+                page = browser.new_page(viewport={"width": 1500, "height": 1100})
+                page.goto(f"{lab['url']}/lab/tree/{saved.name}")
+                page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget",
+                                       timeout=90_000)
+                page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
+                time.sleep(3.0)
+                untrusted = _check_cells(page, saved, trusted=False, tag="untrusted")
+                page.close()
+                subprocess.run([sys.executable, "-m", "jupyter", "trust", str(saved)], check=True,
+                               capture_output=True, env=lab["env"])
+                _stop_lab(lab)
+                lab = _start_lab(tmp_path, work)  # the server restarted; the same trust store
+                page = browser.new_page(viewport={"width": 1500, "height": 1100})
+                page.goto(f"{lab['url']}/lab/tree/{saved.name}")
+                page.wait_for_function("() => window.jupyterapp && window.jupyterapp.shell.currentWidget",
+                                       timeout=90_000)
+                page.locator(".jp-OutputArea-output").first.wait_for(timeout=60_000)
+                time.sleep(3.0)
+                trusted = _check_cells(page, saved, trusted=True, tag="trusted-after-restart")
+            finally:
+                browser.close()
+    finally:
+        _stop_lab(lab)
+    assert len(untrusted) == len(trusted) == 1  # the map's cell
+    deadline = time.monotonic() + 15
+    while (meshcat_servers() - before) and time.monotonic() < deadline:
+        time.sleep(0.3)
+    assert not (meshcat_servers() - before), "a meshcat server outlived JupyterLab's kernel"

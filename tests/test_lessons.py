@@ -65,3 +65,53 @@ def test_flow_scores_follow_the_keyframe_rule():
         if i < len(fs.frame_indices):
             assert fs.references[i] == k and fs.scores[i] < fs.threshold
     assert np.all(fs.scores[fs.due] > fs.threshold)
+
+
+def test_describe_focal_prints_the_runs_interval_and_whether_it_covers_the_truth():
+    """The ± of a focal estimate is the same two standard deviations as the run's camera line (the notebook showed
+    "within 1.0 %" of one sd beside the run's "± 2.0 %"), the bootstrap spread inside it is named, and whether the
+    ± covers the true focal length is said, never assumed; a weak estimate gets no ±, a missing one says so."""
+    import math
+
+    from slamkit.stages.self_calibration import COVERAGE, MODEL_ERROR, FocalEstimate
+
+    spread = 0.004
+    est = FocalEstimate(322.24, math.hypot(spread, MODEL_ERROR), 120, 60, False)
+    text = lessons.describe_focal(est, 320.0)
+    assert f"± {100 * COVERAGE * est.uncertainty:.1f} %" in text and est.interval == COVERAGE * est.uncertainty
+    assert f"bootstrap spread {100 * spread:.1f} %, model error 1 %" in text
+    assert "the error is +0.7 % (true f = 320 px), inside the ±" in text  # 0.7 % < 2 sd = 2.2 %
+    far = FocalEstimate(340.0, math.hypot(spread, MODEL_ERROR), 120, 60, False)
+    assert "the error is +6.2 %" in lessons.describe_focal(far, 320.0) and "outside the ±" in lessons.describe_focal(far, 320.0)
+    weak = FocalEstimate(300.0, 0.3, 4, 20, True, "the frame pairs disagree")
+    assert "±" not in lessons.describe_focal(weak, 320.0) and "weak" in lessons.describe_focal(weak, 320.0)
+    none = FocalEstimate(float("nan"), math.inf, 0, 40, True, "the optical axes meet in all 12 frame pairs")
+    assert lessons.describe_focal(none, 320.0).startswith("no estimate (the optical axes meet")
+
+
+def test_rank_settings_names_ties_by_the_spread_over_repeats():
+    """Notebook 03's "best": the lowest mean ATE, and the settings that cannot be told apart from it — within two
+    combined standard errors over repeats, or, with one run per setting, equal at the precision shown."""
+    import pandas as pd
+
+    def frame(rows):
+        return pd.DataFrame([{"flow_threshold": f, "init_frames": i, "seed": s, "status": "ok", "ate_rmse_m": a}
+                             for f, i, s, a in rows])
+
+    one = frame([(0.05, 10, 0, 0.00620), (0.05, 20, 0, 0.00626), (0.1, 10, 0, 0.00800), (0.1, 20, 0, 0.00619)])
+    r = lessons.rank_settings(one, ["flow_threshold", "init_frames"])
+    assert r.best == {"flow_threshold": 0.1, "init_frames": 20} and r.seed == 0
+    assert r.tied == [{"flow_threshold": 0.05, "init_frames": 10}]  # shown as 0.62 cm like the best; 0.63 and 0.80 cm are not
+    assert [round(a, 5) for _, a, _, _ in r.ate_m] == [0.00619, 0.0062, 0.00626, 0.008]
+    assert "a tie, not a ranking" in r.describe() and "no spread" in r.rule
+    rows = [(0.05, 10, s, a) for s, a in enumerate((0.010, 0.011, 0.012))]
+    rows += [(0.1, 10, s, a) for s, a in enumerate((0.0115, 0.0125, 0.0105))]  # mean 0.0115: 1.4 se apart
+    rows += [(0.2, 10, s, a) for s, a in enumerate((0.030, 0.031, 0.029))]
+    r = lessons.rank_settings(frame(rows), ["flow_threshold"])
+    assert r.best == {"flow_threshold": 0.05} and r.tied == [{"flow_threshold": 0.1}]
+    assert r.ate_m[0][2] == pytest.approx(0.001) and r.ate_m[0][3] == 3
+    r = lessons.rank_settings(frame(rows[:3] + rows[6:]), ["flow_threshold"])
+    assert r.tied == [] and "no other setting is tied" in r.describe()
+    failed = frame([(0.05, 10, 0, float("nan"))]).assign(status="failed")
+    with pytest.raises(ValueError):
+        lessons.rank_settings(failed, ["flow_threshold"])

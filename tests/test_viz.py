@@ -31,6 +31,7 @@ from slamkit.config import SlamConfig  # noqa: E402
 from slamkit.pipeline import Slam  # noqa: E402
 from slamkit.sources import open_source  # noqa: E402
 from slamkit.viz import frame_view as fv  # noqa: E402
+from slamkit.viz.explain import describe_step  # noqa: E402
 from slamkit.viz.meshcat_view import MapState, MapView, recency_colors, state_from_run  # noqa: E402
 from slamkit.viz.server import HOST, MeshcatServer  # noqa: E402
 
@@ -158,6 +159,7 @@ def run(tmp_path_factory):
     slam = Slam(open_source("default"), SlamConfig().with_overrides(**FAST))
     view = MapView()
     drawn = []  # (result.matches, lines derived by the frame view) of tracked frames
+    tracked = []  # the tracked steps' results
     stats = []
 
     def record(s, r):
@@ -172,13 +174,14 @@ def run(tmp_path_factory):
         if r.status == "tracked":
             lines = fv.flow_lines(r)  # what the result carries: the tracker's own matches
             drawn.append((r.matches, len(lines[0]), len(lines[1])))
+            tracked.append(r)
         local_map = slam.local_map
     assert local_map is not None
     slam.finish()
     view.update(slam)
     out = tmp_path_factory.mktemp("run") / "run"
     slam.save(out)
-    yield dict(slam=slam, view=view, drawn=drawn, stats=stats, dir=out)
+    yield dict(slam=slam, view=view, drawn=drawn, stats=stats, dir=out, tracked=tracked)
     view.close()
 
 
@@ -460,6 +463,61 @@ def test_draw_flow_and_matches():
     both = fv.draw_matches(img, ref, img, cur, np.array([[0, 0], [1, 1]]))
     assert both.shape == (120, 320, 3)
     assert fv.encode_image(out)[:2] == b"\xff\xd8" and fv.encode_image(out, "png")[:4] == b"\x89PNG"
+
+
+def test_picture_of_the_view_from_its_camera(run):
+    """The 3D view's PNG twin (what a notebook opened untrusted or without its kernel shows) is the map seen from
+    the viewer's own camera: three.js's camera at the position last sent, looking at the map's centre, z up, so
+    a point to the camera's right is drawn right of centre and one above it above; every keyframe and most
+    points are in the picture, and the picture has the viewer's shape."""
+    import io
+
+    from matplotlib.figure import Figure
+    from PIL import Image as PILImage
+
+    from slamkit.viz.scene import VIEWER_FOV_DEG
+    from slamkit.viz.static_twin import _project, draw_map_from_camera, map_picture
+
+    view = run["view"]
+    view.reset_camera()
+    p = np.asarray(view._out.camera_position, float)
+    forward = -p / np.linalg.norm(p)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    ndc, depth = _project(np.array([[0.0, 0, 0], 0.5 * right, 0.5 * up]), p, view.aspect)
+    t = np.tan(np.radians(VIEWER_FOV_DEG) / 2)
+    assert np.allclose(ndc[0], 0) and np.allclose(depth, np.linalg.norm(p))
+    assert ndc[1] == pytest.approx([0.5 / (np.linalg.norm(p) * t * view.aspect), 0], abs=1e-9)
+    assert ndc[2] == pytest.approx([0, 0.5 / (np.linalg.norm(p) * t)], abs=1e-9)
+    drawn = draw_map_from_camera(Figure().add_subplot(), view)
+    assert drawn["keyframes"] == len(view.keyframe_ids) and drawn["path"] >= 2 and drawn["current"] == 1
+    assert 0.9 * view.num_points <= drawn["points"] <= view.num_points
+    img = PILImage.open(io.BytesIO(map_picture(view, 300)))
+    assert img.size == (round(300 * view.aspect), 300 + 44)
+    rgb = np.asarray(img.convert("RGB"), np.int16)
+    assert ((rgb.max(axis=2) - rgb.min(axis=2)) > 40).mean() > 0.01  # coloured points and cameras drawn
+    empty = MapView(vis=run["view"].vis, name="empty-picture")
+    assert draw_map_from_camera(Figure().add_subplot(), empty) == dict.fromkeys(drawn, 0)  # "no map yet"
+
+
+def test_step_explanation_counts_nest(run):
+    """describe_step's counts read as subsets: pose inliers of the local-map matches, the tracked matches (to the
+    last keyframe) of those inliers; the numbers are the result's own (the explanation once printed "916 tracked
+    matches, 1172 pose inliers" as if the inliers were among the tracked matches)."""
+    results = run["tracked"]
+    assert len(results) >= 10
+    pattern = re.compile(r"(\d+) pose inliers of (\d+) local-map matches, (\d+) of them tracked from the last keyframe")
+    more_inliers = 0
+    for r in results:
+        m = pattern.search(describe_step(r))
+        assert m, describe_step(r)
+        inliers, matches, tracked = (int(v) for v in m.groups())
+        assert (inliers, tracked) == (r.inliers, r.matches) and matches == len(r.tracked)
+        assert tracked <= inliers <= matches
+        assert int(r.tracked.inliers.sum()) == r.inliers  # the local-map matches' inlier mask is the pose's
+        more_inliers += r.inliers > r.matches
+    assert more_inliers > 0  # the case the old wording got wrong occurs on this run
 
 
 def test_step_html_names_the_thresholds(run):

@@ -47,6 +47,11 @@ DEFAULT_SOURCE = "default"
 """The embedded synthetic sequence (exact ground truth)."""
 
 
+MOVED_TEXT = ("The app moved to a later cell (it was displayed again there); below, its picture and status as they "
+              "were when it left this one, which the cells that follow here describe.")
+"""What an earlier place of the app shows once the app is displayed again further down."""
+
+
 class SlamApp(AppWidgets):
     """Step-through SLAM in a notebook: controls, 3D map (meshcat), frame view and summary.
 
@@ -79,6 +84,8 @@ class SlamApp(AppWidgets):
         self.twin = StaticTwin(self, min_interval=5.0)
         """The plain outputs under the widgets (a picture and the status text) that a saved notebook keeps."""
         self._hooked = None
+        self._shown = None
+        """The display handle of the widgets' last place in the notebook (None until displayed)."""
         self._build_widgets(self.slam.config, self.source_spec, len(self.slam.source), out_dir, self.view.settings,
                             self.view.iframe_html(self.map_height, legend=False))
         self._connect()
@@ -141,7 +148,11 @@ class SlamApp(AppWidgets):
         bundle = self.widget._repr_mimebundle_()
         bundle["text/plain"] = ("slamkit app (its controls need the running kernel; the picture and status "
                                 "below are their static copy)")
-        display(bundle, raw=True)
+        if self._shown is not None:  # the app moves to this cell: where it was keeps the state it had then
+            self.twin.refresh(force=True)
+            self.twin.detach()
+            self._shown.update({"text/plain": MOVED_TEXT}, raw=True)
+        self._shown = display(bundle, raw=True, display_id=True)
         self.twin.show()
         ip = get_ipython()
         if ip is not None and self._hooked is None:
@@ -240,11 +251,21 @@ class SlamApp(AppWidgets):
             self._finish()
         return result
 
-    def run(self, max_steps: int | None = None) -> list[StepResult]:
-        """Step synchronously (``max_steps`` frames, or to the end); the widgets update as it goes."""
+    def run(self, max_steps: int | None = None, progress: bool = False) -> list[StepResult]:
+        """Step synchronously (``max_steps`` frames, or to the end); the widgets update as it goes. With
+        ``progress``, a text progress bar (a saved notebook keeps it) counts the frames to the end of the run."""
+        from .progress import progress_bar
+
         out = []
+        left = len(self.slam) - len(self.slam.records)
+        todo = left if max_steps is None else min(left, max_steps)
+        bar = progress_bar(todo, "frame", "app.run") if progress and todo > 0 else None
         while not self.slam.done and (max_steps is None or len(out) < max_steps):
             out.append(self.step())
+            if bar is not None:
+                bar.update(1)
+        if bar is not None:
+            bar.close()
         return out
 
     def toggle_run(self) -> None:

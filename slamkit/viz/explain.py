@@ -27,6 +27,19 @@ FLOW_SCORE = ("flow score = median |Δx| / fx + median |Δy| / fy over the track
 """What the flow score is, in one line."""
 
 
+def pose_counts(r: "StepResult") -> str:
+    """The tracker's counts of a tracked step, each a subset of the one before it: the 2D-3D matches to the
+    local map (the last round, ``r.tracked``), the pose inliers among them, and the tracked matches (the inliers
+    on points the last keyframe observes, compared with ``min_tracked_matches``). A frame matched against the
+    whole local map has more pose inliers than tracked matches: the two are different sets, so the words say
+    which contains which."""
+    total = max(len(r.tracked), r.inliers)  # a result without its match list (rotation phase): the inliers
+    head = f"{r.inliers} pose inliers of {total} local-map matches"
+    if r.matches <= r.inliers:
+        return f"{head}, {r.matches} of them tracked from the last keyframe"
+    return f"{head}; {r.matches} tracked matches to the last keyframe"
+
+
 def describe_step(r: "StepResult") -> str:
     """One plain-text line for a step result, worded for the phase the pipeline is in."""
     head = f"frame {r.frame_index} [{r.status}]"
@@ -43,7 +56,7 @@ def describe_step(r: "StepResult") -> str:
     parts = [head]
     if not np.isnan(r.flow):
         parts.append(f"flow score {r.flow:.3f}")
-    parts.append(f"{r.matches} tracked matches, {r.inliers} pose inliers")
+    parts.append(pose_counts(r))
     if r.motion_model:
         parts.append(f"motion model: {r.motion_model_reason}")
     if r.is_keyframe:
@@ -108,4 +121,4 @@ def legend_html(view_legend: str = "") -> str:
             f'keyframe to the current frame, {sw("rgb(230,30,30)", "dot")} its current position.</div>')
 
 
-__all__ = ["describe_step", "flow_help_html", "scale_html", "legend_html", "FLOW_SCORE"]
+__all__ = ["describe_step", "pose_counts", "flow_help_html", "scale_html", "legend_html", "FLOW_SCORE"]

@@ -448,18 +448,85 @@ def plot_loop_correction(ax, lc: LoopCorrection, unit: str = "m") -> None:
 
 def describe_focal(estimate, true_focal: float | None = None) -> str:
     """One line for a focal-length estimate (``stages.self_calibration.FocalEstimate``) that claims no more
-    than it knows: a weak estimate gets no ± (it is not a measurement); otherwise the bootstrap spread is
-    named for what it is — how closely the frame pairs agree, not the error — beside the error against
-    ``true_focal`` (pixels) when it is known."""
+    than it knows: a weak estimate gets no ± (it is not a measurement); otherwise the same ± as the run's camera
+    line (``FocalEstimate.interval``: two standard deviations), with the bootstrap spread it contains named for
+    what it is (how closely the frame pairs agree), beside the error against ``true_focal`` (pixels) when it is
+    known and whether the ± covers it."""
     if not math.isfinite(estimate.focal):
         return f"no estimate ({estimate.reason or 'no usable frame pair'})"
     head = f"f = {estimate.focal:.1f} px from {estimate.num_pairs} frame pairs"
     if estimate.weak:
         return f"{head} — weak, not a measurement: {estimate.reason or 'the frames barely constrain it'}"
-    text = f"{head}; the pairs agree within {100 * estimate.uncertainty:.1f} % (bootstrap spread, not the error)"
+    from ..stages.self_calibration import MODEL_ERROR
+
+    spread = math.sqrt(max(estimate.uncertainty ** 2 - MODEL_ERROR ** 2, 0.0))  # uncertainty = hypot(spread, model)
+    text = (f"{head} ± {100 * estimate.interval:.1f} % (2 sd: bootstrap spread {100 * spread:.1f} %, model error "
+            f"{100 * MODEL_ERROR:g} %)")
     if true_focal:
-        text += f"; the error is {100 * (estimate.focal / true_focal - 1):+.1f} % (true f = {true_focal:g} px)"
+        err = estimate.focal / true_focal - 1
+        text += (f"; the error is {100 * err:+.1f} % (true f = {true_focal:g} px), "
+                 + ("inside" if abs(err) <= estimate.interval else "outside") + " the ±")
     return text
+
+
+# ---------------------------------------------------------------------------------------------- a sweep's ranking
+
+
+@dataclass(frozen=True)
+class SweepRanking:
+    """The settings of a parameter sweep ranked by mean ATE (notebook 03), with the ties named.
+
+    ``best``: the parameter values (a dict) of the lowest mean ATE; ``seed``: a seed it was run with;
+    ``ate_m``: (settings, mean ATE in metres, standard deviation over repeats or NaN, runs) per setting,
+    lowest first; ``tied``: the settings that cannot be told apart from ``best``; ``rule``: how a tie was
+    decided, in words."""
+
+    best: dict
+    seed: int
+    ate_m: list
+    tied: list
+    rule: str
+
+    def describe(self) -> str:
+        """One line: the lowest mean ATE, the settings tied with it and the rule that says so."""
+        def name(p: dict) -> str:
+            return ", ".join(f"{k}={v:g}" if isinstance(v, (int, float)) else f"{k}={v}" for k, v in p.items())
+
+        head = f"lowest mean ATE: {name(self.best)}, {100 * self.ate_m[0][1]:.2f} cm"
+        if not self.tied:
+            return f"{head}; no other setting is tied with it ({self.rule})"
+        return (f"{head}; tied with {'; '.join(name(p) for p in self.tied)} ({self.rule}): a tie, not a ranking")
+
+
+def rank_settings(df, names, precision_m: float = 1e-4) -> SweepRanking:
+    """Rank the settings of a sweep (``ablate.sweep``'s DataFrame, parameter columns ``names``) by their mean ATE
+    over the runs that succeeded. With at least two runs (seeds) of every setting, a setting is tied with the
+    best when its mean is within two combined standard errors of the best's; with one run of some setting
+    there is no spread to compare with, and only means equal to ``precision_m`` (metres; the notebook shows
+    centimetres with two decimals) are called tied."""
+    ok = df[(df["status"] == "ok") & df["ate_rmse_m"].notna()]
+    if ok.empty:
+        raise ValueError("no successful run to rank")
+    names = list(names)
+    g = ok.groupby(names, sort=False)["ate_rmse_m"]
+    mean, sd, n = g.mean(), g.std(ddof=1), g.size()
+    order = mean.sort_values(kind="stable").index
+    keys = [k if isinstance(k, tuple) else (k,) for k in order]
+    params = [dict(zip(names, (v.item() if hasattr(v, "item") else v for v in k))) for k in keys]
+    rows = [(p, float(mean[k]), float(sd[k]) if n[k] >= 2 else float("nan"), int(n[k])) for p, k in zip(params, order)]
+    best_key = order[0]
+    if (n >= 2).all():
+        se = sd / np.sqrt(n)
+        margin = 2 * np.sqrt(se[best_key] ** 2 + se ** 2)
+        tied = [p for p, k in zip(params[1:], order[1:]) if mean[k] - mean[best_key] <= margin[k]]
+        rule = "within two standard errors of the mean over repeats"
+    else:
+        tied = [p for p, k in zip(params[1:], order[1:])
+                if round(mean[k] / precision_m) == round(mean[best_key] / precision_m)]
+        rule = (f"equal to the {100 * precision_m:g} cm shown: with one run per setting there is no spread to "
+                "compare a difference with")
+    best_runs = ok.set_index(names).loc[[best_key]] if len(names) > 1 else ok[ok[names[0]] == best_key]
+    return SweepRanking(params[0], int(best_runs["seed"].iloc[0]), rows, tied, rule)
 
 
 # ---------------------------------------------------------------------------------------------- drawing
@@ -484,4 +551,4 @@ def plot_matches(ax, frame1: Frame, frame2: Frame, comparison: FeatureComparison
 __all__ = ["describe_focal", "lap_of", "plot_matches", "skew", "relative_pose", "fundamental_from_poses", "epipolar_distances", "FeatureComparison",
            "detect_and_match", "compare_features", "learned_pipelines", "FlowScores", "flow_scores", "TwoView",
            "triangulation_angles", "two_view", "reprojection_errors", "AdjustmentDemo", "perturb_and_adjust",
-           "LoopCorrection", "loop_correction", "plot_loop_correction"]
+           "LoopCorrection", "loop_correction", "plot_loop_correction", "SweepRanking", "rank_settings"]

@@ -200,8 +200,8 @@ class MapView:
         (the viewer's camera is set again then, so an orbit made by hand is undone)."""
         self.closed = False
         self._map = ShownMap()
-        self._outputs: list[tuple[Any, int]] = []
-        """(display handle, height) of every live view :meth:`display` showed."""
+        self._outputs: list[tuple[Any, Any, int]] = []
+        """(display handles of the view and of its picture, height) of every live view :meth:`display` showed."""
         self._out.send_scene_settings(self.settings)
 
     # ------------------------------------------------------------------ lifecycle
@@ -237,10 +237,10 @@ class MapView:
         inner = (snapshot_iframe(self.static_html(legend=False), "100%", height, lazy=True) if snapshot else
                  f'<div class="slamkit-no-kernel" style="padding:2em;font:13px sans-serif;color:#555">'
                  f'{html.escape(NO_KERNEL_TEXT)}</div>')
-        box = (f'<div class="slamkit-map-box" style="height:{int(height)}px;width:{width}px;max-width:100%;'
-               f'overflow:hidden;resize:both;position:relative">'
+        # the height is the object's: an untrusted notebook strips object and iframe, and the box collapses
+        box = (f'<div class="slamkit-map-box" style="width:{width}px;max-width:100%;position:relative">'
                f'<object class="slamkit-map" type="text/html" data="{self.url}" '
-               f'style="width:100%;height:100%;border:none">{inner}</object></div>')
+               f'style="display:block;width:100%;height:{int(height)}px;border:none">{inner}</object></div>')
         if not legend:
             return box
         legend_box = f'<div style="max-width:{width}px;padding:2px 0">{legend_html(self.legend_items())}</div>'
@@ -263,27 +263,33 @@ class MapView:
         return items
 
     def display(self, height: int = 480) -> None:
-        """Show the live viewer in the notebook (a cell output that :meth:`keep_snapshot` can update)."""
-        from IPython.display import display
-        self._outputs.append((display(HTML(self.iframe_html(height)), display_id=True), int(height)))
+        """Show the live viewer, then the same map as a picture (a PNG: shown untrusted, without a kernel, on a
+        viewer, by nbconvert) and a line on what the live view needs; :meth:`keep_snapshot` updates both."""
+        from .static_twin import show_with_picture
+
+        self._outputs.append((*show_with_picture(self, self.iframe_html(height), height), int(height)))
 
     def keep_snapshot(self) -> int:
-        """Store the current scene in every output :meth:`display` made, as the picture a saved notebook
-        shows without a kernel (the live view stays live while the kernel runs; its page reloads once).
-        Call it when the map is final, e.g. after ``slam.run()``; returns the outputs updated."""
-        for handle, height in self._outputs:
+        """Store the current scene frozen in every view :meth:`display` made (a trusted notebook shows it without
+        a kernel; the live view stays live, its page reloads once) and redraw their pictures. Call it when the
+        map is final, e.g. after ``slam.run()``; returns the outputs updated."""
+        from .static_twin import picture_bundle
+
+        for handle, pic, height in self._outputs:
             handle.update(HTML(self.iframe_html(height, snapshot=True)))
+            pic.update(picture_bundle(self, height), raw=True)
         return len(self._outputs)
 
     def snapshot_html(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> str:
-        """The current scene frozen in an ``<iframe srcdoc>`` (:meth:`static_html`, legend included):
-        needs no server and no kernel."""
+        """The current scene frozen in an ``<iframe srcdoc>`` (:meth:`static_html`, legend): no server, no kernel."""
         return snapshot_iframe(self.static_html(title, caption), f"{int(round(height * self.aspect))}px", height)
 
-    def snapshot(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> HTML:
-        """:meth:`snapshot_html` as a cell output (the last expression of a cell; in a ``<div>``, which IPython
-        shows without its "use IFrame" warning)."""
-        return HTML(f"<div>{self.snapshot_html(height, title, caption)}</div>")
+    def snapshot(self, height: int = 480, title: str = DEFAULT_TITLE, caption: str | None = None) -> None:
+        """Display :meth:`snapshot_html` (in a ``<div>``: IPython's "use IFrame" warning stays away), then the same
+        map as a picture and the trust line (an untrusted notebook drops the iframe, shows the picture)."""
+        from .static_twin import show_with_picture
+
+        show_with_picture(self, f"<div>{self.snapshot_html(height, title, caption)}</div>", height)
 
     def static_html(self, title: str = DEFAULT_TITLE, caption: str | None = None, legend: bool = True) -> str:
         """The current scene as one self-contained HTML page (the viewer's JavaScript included), titled

@@ -18,7 +18,15 @@ BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar:30}| {n_fmt}/{total_fmt} {unit}s [
 def progress_bar(total: int, unit: str = "frame", desc: str = "progress") -> tqdm:
     """A text progress bar over ``total`` items (``unit``), on stdout; ``update(1)`` per item, ``close()``."""
     return tqdm(total=total, unit=unit, desc=desc, file=sys.stdout, bar_format=BAR_FORMAT, mininterval=3.0,
-                ascii=False, dynamic_ncols=False, ncols=100)
+                ascii=False, dynamic_ncols=False, ncols=None)  # no width limit: a long description cut the line
 
 
-__all__ = ["progress_bar", "BAR_FORMAT"]
+def close_early(bar: tqdm, desc: str) -> None:
+    """Close ``bar`` at the count it reached, as full: the work ended before the total it was given (e.g. a run
+    stepped only to its first loop closure), which ``desc`` says; a bar is never left standing part-way."""
+    bar.total = bar.n
+    bar.set_description_str(desc, refresh=False)
+    bar.close()
+
+
+__all__ = ["progress_bar", "close_early", "BAR_FORMAT"]

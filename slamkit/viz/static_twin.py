@@ -77,6 +77,145 @@ def draw_map_from_above(ax, view: "MapView", max_points: int = 30_000) -> dict[s
     return drawn
 
 
+TRUST_HINT = ("The interactive 3D view above needs a trusted notebook and its running kernel: run the cell, or "
+              "trust the notebook (JupyterLab: command palette, Ctrl+Shift+C > Trust Notebook; a shell: "
+              "`jupyter trust NOTEBOOK.ipynb`). The picture is the same map from the same camera, and shows "
+              "anywhere (untrusted, without a kernel, on a notebook viewer, in nbconvert's HTML).")
+"""The line shown under every 3D view's picture: why the interactive view can be missing and what to do."""
+
+
+def _project(xyz: np.ndarray, position: np.ndarray, aspect: float) -> tuple[np.ndarray, np.ndarray]:
+    """((N, 2) normalized device coordinates, (N,) depths) of display-frame points seen from ``position``
+    looking at the origin, z up, with the viewer's field of view (:data:`scene.VIEWER_FOV_DEG`)."""
+    from .scene import VIEWER_FOV_DEG, _view_axes
+
+    d, right, up = _view_axes(position)
+    depth = float(np.linalg.norm(position)) - xyz @ d
+    t = np.tan(np.radians(VIEWER_FOV_DEG) / 2)
+    safe = np.maximum(depth, 1e-6)
+    # _view_axes' "right" is the viewer's left (cross(d, z) with d pointing back at the camera): screen x is minus it
+    return np.stack([-(xyz @ right) / (safe * t * aspect), (xyz @ up) / (safe * t)], axis=1), depth
+
+
+def draw_map_from_camera(ax, view: "MapView", max_points: int = 40_000) -> dict[str, int]:
+    """The map ``view`` holds as its 3D viewer shows it from its home camera (the position last sent to the
+    viewer, looking at the map's centre, z up, the viewer's field of view and aspect), on a matplotlib axis
+    spanning the viewer's picture: points in the view's colours (by height on the view's scale, or in their
+    image colours), far ones drawn first; keyframe frustums and the path from green (first) to red (last);
+    the current frame blue; loop closures cyan. Returns what was drawn (counts)."""
+    from matplotlib.collections import LineCollection
+
+    from .scene import (LOOP_COLOR, display_from_map, frustum_vertices, height_colors, home_camera_position,
+                        map_heights, path_vertex_times)
+
+    shown, settings = view._map, view.settings
+    aspect = view.aspect
+    ax.set_xlim(-1, 1), ax.set_ylim(-1, 1)
+    ax.set_xticks([]), ax.set_yticks([])
+    ax.set_facecolor(settings.background)
+    drawn = {"points": 0, "keyframes": 0, "path": 0, "current": 0, "loops": 0}
+    if shown.key is None or shown.fit is None:
+        ax.text(0, 0, "no map yet", ha="center", va="center", color="#777")
+        return drawn
+    T = display_from_map(shown.fit)
+    position = view._out.camera_position
+    if position is None:
+        points, cameras = shown.display_points()
+        position = home_camera_position(points, aspect, cameras)
+    position = np.asarray(position, np.float64)
+
+    def to_screen(xyz_map: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _project(_apply(T, np.asarray(xyz_map, np.float64).reshape(-1, 3)), position, aspect)
+
+    def segments(vertices: np.ndarray, colors: np.ndarray, lw: float) -> int:
+        """Line segments (pairs of map-frame vertices) in front of the camera."""
+        xy, depth = to_screen(vertices)
+        xy, depth = xy.reshape(-1, 2, 2), depth.reshape(-1, 2)
+        keep = (depth > 1e-3).all(axis=1)
+        if keep.any():
+            ax.add_collection(LineCollection(xy[keep], colors=np.asarray(colors)[keep], linewidths=lw, zorder=3))
+        return int(keep.sum())
+
+    alive = shown.points.alive()
+    pts = shown.points.xyz[alive]
+    if settings.show_points and len(pts):
+        rgb = (shown.points.rgb[alive].astype(np.float64) / 255 if settings.color_by == "image" else
+               height_colors(map_heights(pts), *shown.height_range) / 255.0)
+        if len(pts) > max_points:
+            pick = np.random.default_rng(0).choice(len(pts), max_points, replace=False)
+            pts, rgb = pts[pick], rgb[pick]
+        xy, depth = to_screen(pts)
+        keep = (depth > 1e-3) & (np.abs(xy) <= 1.05).all(axis=1)
+        order = np.argsort(-depth[keep])  # far first: near points cover far ones, as in the viewer
+        ax.scatter(xy[keep][order, 0], xy[keep][order, 1], c=rgb[keep][order], s=3.0, lw=0, rasterized=True,
+                   zorder=2)
+        drawn["points"] = int(keep.sum())
+    depth_kf = settings.frustum_depth(shown.map_extent)
+    sel = shown.clip_keyframes(settings.clip)
+    if settings.show_keyframes and sel.any():
+        poses = shown.kf_world_from_cam()[sel]
+        colors = np.repeat(recency_colors(shown.time_fractions(shown.kf_times[sel])), 8, axis=0)
+        segments(frustum_vertices(poses, shown.camera, depth_kf), colors, 0.8)
+        drawn["keyframes"] = int(len(poses))
+    if settings.show_path and len(shown.path_c) >= 2:
+        t0, t1 = shown.clip_times(settings.clip)
+        keep = (shown.path_t >= t0) & (shown.path_t <= t1)
+        c, t = shown.path_c[keep], shown.path_t[keep]
+        if len(c) >= 2:
+            v = np.stack([c[:-1], c[1:]], axis=1).reshape(-1, 3)
+            colors = recency_colors(shown.time_fractions(path_vertex_times(t)))[::2]
+            segments(v, colors, 1.2)
+            drawn["path"] = int(len(c))
+        if len(shown.loop_edges):
+            drawn["loops"] = segments(shown.loop_edges.reshape(-1, 3), np.tile(LOOP_COLOR, (len(shown.loop_edges), 1)),
+                                      4.0)
+    if settings.show_current and shown.current is not None:
+        v = frustum_vertices(np.asarray(shown.current, np.float64)[None], shown.camera, depth_kf * 1.5)
+        drawn["current"] = int(segments(v, np.tile(CURRENT_COLOR, (8, 1)), 1.5) > 0)
+    return drawn
+
+
+def map_picture(view: "MapView", height: int = 420, title: str | None = None) -> bytes:
+    """PNG bytes: :func:`draw_map_from_camera` at the viewer's size (``height`` pixels, ``view.aspect`` times
+    as wide), titled with what it shows."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    width, head_px = int(round(height * view.aspect)), 44
+    fig = Figure(figsize=(width / PNG_DPI, (height + head_px) / PNG_DPI), dpi=PNG_DPI)
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0, 0, 1, height / (height + head_px)))
+    drawn = draw_map_from_camera(ax, view)
+    colouring = "their image colours" if view.settings.color_by == "image" else "height (dark blue low → yellow high)"
+    lines = [title or "the 3D view as a picture: the same map from the same camera",
+             f"{drawn['points']} points coloured by {colouring}",
+             f"{drawn['keyframes']} keyframes and the path from green (first) to red (last)"
+             + (", current frame blue" if drawn["current"] else "")
+             + (f", {drawn['loops']} loop closure{'s' if drawn['loops'] != 1 else ''} cyan" if drawn["loops"] else "")]
+    fig.text(0.01, 1 - 3 / (height + head_px), "\n".join(lines), va="top", fontsize=8.5)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=PNG_DPI)
+    return buf.getvalue()
+
+
+def picture_bundle(view: "MapView", height: int = 480, title: str | None = None) -> dict:
+    """:func:`map_picture` as a display bundle (``image/png`` and a plain-text line) that every notebook front end
+    shows, trusted or not, with a kernel or without one."""
+    return {"image/png": map_picture(view, height, title),
+            "text/plain": "the 3D view as a picture (the same map from the same camera)"}
+
+
+def show_with_picture(view: "MapView", view_html: str, height: int):
+    """Display a 3D view's HTML (live or frozen), its picture (:func:`picture_bundle`) and :data:`TRUST_HINT`;
+    the display handles of the first two (to update them)."""
+    from IPython.display import HTML, display
+
+    shown = display(HTML(view_html), display_id=True)
+    pic = display(picture_bundle(view, height), raw=True, display_id=True)
+    display({"text/markdown": TRUST_HINT, "text/plain": TRUST_HINT}, raw=True)
+    return shown, pic
+
+
 def app_picture(app: "SlamApp") -> bytes:
     """PNG bytes: the app's map seen from above and its frame panel (the current frame with its flow lines),
     each with a title that says what it is."""
@@ -145,6 +284,11 @@ class StaticTwin:
         png, text = self._bundles()
         self._handles.append((display(png, raw=True, display_id=True), display(text, raw=True, display_id=True)))
 
+    def detach(self) -> None:
+        """Stop updating the twin outputs shown so far: they keep the state they show now (the app was displayed
+        again further down, where :meth:`show` starts new ones)."""
+        self._handles.clear()
+
     def refresh(self, force: bool = False) -> bool:
         """Redraw every shown twin if the app changed (and ``min_interval`` has passed, unless ``force``)."""
         if not self._handles or not self.dirty or (not force and time.monotonic() - self._drawn_at < self.min_interval):
@@ -156,4 +300,5 @@ class StaticTwin:
         return True
 
 
-__all__ = ["StaticTwin", "app_picture", "app_text", "draw_map_from_above"]
+__all__ = ["StaticTwin", "TRUST_HINT", "app_picture", "picture_bundle", "show_with_picture", "app_text", "draw_map_from_above", "draw_map_from_camera",
+           "map_picture"]
