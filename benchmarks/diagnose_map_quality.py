@@ -15,7 +15,7 @@ Two verbs:
     Reads each finished run folder (``sparse/``, ``frames.csv``, ``summary.json``, ``trajectory_tum.txt``,
     ``keyframes_tum.txt``, ``groundtruth_tum.txt`` or ``--gt``, ``session/`` for keypoint sizes) and prints
     the tables below; writes ``PREFIX_summary.csv`` (one row per run), ``PREFIX_octave.csv``,
-    ``PREFIX_depth.csv`` and ``PREFIX_chi2.csv`` (one row per run and bin).
+    ``PREFIX_depth.csv``, ``PREFIX_track.csv`` and ``PREFIX_chi2.csv`` (one row per run and bin).
 
 Summary columns (one row per run; lengths in metres after the Sim(3) alignment, errors in pixels):
 
@@ -23,7 +23,8 @@ Summary columns (one row per run; lengths in metres after the Sim(3) alignment, 
 * ate_all: ATE RMSE (Sim(3) fitted to all posed frames); ate_kf: ATE RMSE over keyframes only (Sim(3)
   fitted to keyframes: ORB-SLAM2's KeyFrameTrajectory.txt); ate_all_on_kf / ate_all_on_nonkf: the RMSE of
   the all-frames alignment's errors restricted to keyframes / to the frames between them (is the loss in
-  the frames posed between keyframes?);
+  the frames posed between keyframes?); ate_all_on_inner_nonkf: the same over the non-keyframes between the
+  first and the last keyframe; outer_frames: frames before the first or after the last keyframe;
 * rel_nonkf: RMS of the error of each non-keyframe's displacement from the keyframe before it (estimate
   scaled and rotated by the all-frames alignment minus the truth): error made *since* the last keyframe;
   rel_kf: the same for each keyframe from the keyframe before it;
@@ -57,6 +58,10 @@ the octave table).
 
 Seeds table (with ``--group``): runs named ``NAME_sSEED`` grouped by NAME, each summary column as mean ± standard
 error (sd / sqrt(n)) over the seeds, n the number of runs.
+
+Track table (per run and track-length bin of the observation's point): obs, obs_pct, points, reproj_median,
+norm_median, gt_reproj_median, gt_bad_pct. Compare maps within a bin: a point adjusted from L observations keeps
+2L - 3 of their 2L residual dimensions, so shorter tracks show smaller residuals for the same keypoint noise.
 
 Chi2 table (``run`` only; per run, context and octave or relative-depth bin): context is ``local_pass``
 (between the two local BA passes), ``local_maintain`` (after the last local pass) or ``global`` (after a
@@ -181,7 +186,7 @@ def install_chi2_hook(log: Chi2Log):
             rb = _rel_bin(rel)
             for o, b in zip(octv.tolist(), rb.tolist()):
                 log.tested[(ctx, o, b)] += 1
-            bound = np.sqrt(chi2 * (sc ** 2 if scaled else 1.0))
+            bound = np.sqrt(chi2 * (sc ** 2 if scaled else np.ones_like(sc)))
             info[image_id] = {int(p): (int(o), float(r), float(e), float(bd))
                               for p, o, r, e, bd in zip(idx, octv, rel, err, bound)}
         mine = [] if removed is None else removed
@@ -365,8 +370,10 @@ def trajectory_stats(d: RunData) -> dict:
     a, err = _align(est, gt)
     e = np.linalg.norm(err, axis=1)
     is_kf = _nearest(t, d.kf_t) >= 0
+    inner = (t >= t[is_kf].min()) & (t <= t[is_kf].max()) if is_kf.any() else np.zeros(len(t), bool)
     out = {"posed": int(len(d.traj_t)), "ate_all": _rms(e), "ate_all_on_kf": _rms(e[is_kf]),
-           "ate_all_on_nonkf": _rms(e[~is_kf])}
+           "ate_all_on_nonkf": _rms(e[~is_kf]), "ate_all_on_inner_nonkf": _rms(e[~is_kf & inner]),
+           "outer_frames": int((~inner).sum())}
     jk = _nearest(d.kf_t, d.gt_t)
     kest = d.traj_T[_nearest(d.kf_t, d.traj_t)]
     mk = (jk >= 0)
@@ -555,7 +562,8 @@ def chi2_table(d: RunData) -> tuple[dict, list[dict]]:
     if not tp.is_file():
         return {}, []
     with open(tp, newline="") as f:
-        tested = [(r["context"], int(r["octave"]), int(r["rel_depth_bin"]), int(r["tested"])) for r in csv.DictReader(f)]
+        tested = [(r["context"], int(r["octave"]), int(r["rel_depth_bin"]), int(r["tested"]))
+                  for r in csv.DictReader(f)]
     with open(rp, newline="") as f:
         removed = list(csv.DictReader(f))
     rows = []
@@ -576,7 +584,8 @@ def chi2_table(d: RunData) -> tuple[dict, list[dict]]:
                          "removed_pct": 100.0 * len(rem) / n if n else float("nan"),
                          "point_deleted": sum(int(r["point_deleted"]) for r in rem)})
     n_t, n_r = sum(t for *_, t in tested), len(removed)
-    return {"chi2_tested": n_t, "chi2_removed": n_r, "chi2_removed_pct": 100.0 * n_r / n_t if n_t else float("nan")}, rows
+    pct = 100.0 * n_r / n_t if n_t else float("nan")
+    return {"chi2_tested": n_t, "chi2_removed": n_r, "chi2_removed_pct": pct}, rows
 
 
 def octave_rows(name: str, obs: Observations) -> list[dict]:
@@ -619,6 +628,31 @@ def depth_rows(name: str, obs: Observations, metric_scale: float, edges: np.ndar
     return rows
 
 
+TRACK_BINS = ((2, 2), (3, 3), (4, 5), (6, 8), (9, 12), (13, 10 ** 9))
+"""Track-length bins (inclusive) of the track table."""
+
+
+def track_rows(name: str, obs: Observations) -> list[dict]:
+    """Residuals by the track length of the observation's point: a point adjusted from L observations keeps
+    2L - 3 of their 2L residual dimensions, so a map of shorter tracks shows smaller residuals for the same
+    keypoint noise; compare maps within a bin."""
+    rows = []
+    bound = np.sqrt(CHI2) * np.where(np.isfinite(obs.scale), obs.scale, 1.0)
+    norm = obs.err / np.where(np.isfinite(obs.scale), obs.scale, 1.0)
+    for lo, hi in TRACK_BINS:
+        m = (obs.track_len >= lo) & (obs.track_len <= hi)
+        if not m.any():
+            continue
+        g = m & np.isfinite(obs.gt_err)
+        rows.append({"run": name, "track": f"{lo}" if lo == hi else (f"{lo}-{hi}" if hi < 10 ** 9 else f">={lo}"),
+                     "obs": int(m.sum()), "obs_pct": 100.0 * m.sum() / len(m),
+                     "points": int(len(np.unique(obs.point_id[m]))), "reproj_median": float(np.median(obs.err[m])),
+                     "norm_median": float(np.median(norm[m])),
+                     "gt_reproj_median": float(np.median(obs.gt_err[g])) if g.any() else float("nan"),
+                     "gt_bad_pct": 100.0 * float((obs.gt_err[g] > bound[g]).mean()) if g.any() else float("nan")})
+    return rows
+
+
 def keyframe_scale(d: RunData) -> float:
     """The scale of the Sim(3) fitted to the map's keyframe centres (map units -> metres)."""
     gt = gt_cam_from_world(d)
@@ -631,7 +665,7 @@ def keyframe_scale(d: RunData) -> float:
 def analyze(paths: list, gt_file=None, with_ba: bool = True, depth_edges=None, log=print) -> dict:
     """Every table for the run folders ``paths``: {"summary": [...], "octave": [...], "depth": [...],
     "chi2": [...]} (lists of row dicts)."""
-    out = {"summary": [], "octave": [], "depth": [], "chi2": []}
+    out = {"summary": [], "octave": [], "depth": [], "track": [], "chi2": []}
     edges = None if depth_edges is None else np.asarray(depth_edges, np.float64)
     for p in paths:
         d = load_run(p, gt_file)
@@ -654,13 +688,15 @@ def analyze(paths: list, gt_file=None, with_ba: bool = True, depth_edges=None, l
         out["summary"].append(row)
         out["octave"] += octave_rows(name, obs)
         out["depth"] += depth_rows(name, obs, s, edges)
+        out["track"] += track_rows(name, obs)
         out["chi2"] += crows
         log(f"  analysed {p}", flush=True)
     return out
 
 
-SUMMARY_COLUMNS = ["run", "frames", "posed", "ate_all", "ate_kf", "ate_all_on_kf", "ate_all_on_nonkf", "rel_nonkf",
-                   "rel_kf", "keyframes", "culled", "kf_gap_mean", "kf_gap_median", "kf_gap_max",
+SUMMARY_COLUMNS = ["run", "frames", "posed", "ate_all", "ate_kf", "ate_all_on_kf", "ate_all_on_nonkf",
+                   "ate_all_on_inner_nonkf", "outer_frames", "rel_nonkf", "rel_kf", "keyframes", "culled",
+                   "kf_gap_mean", "kf_gap_median", "kf_gap_max",
                    "points", "obs", "track_mean", "track_median", "track_p10", "track_p25", "track_p75",
                    "track_p90", "track2_pct", "track5_pct", "pts_per_kf", "obs_per_kf", "reproj_rms",
                    "reproj_median", "gt_reproj_median", "gt_reproj_p90", "gt_bad_pct", "ba_kf_ate", "ba_opt_ate",
@@ -668,10 +704,10 @@ SUMMARY_COLUMNS = ["run", "frames", "posed", "ate_all", "ate_kf", "ate_all_on_kf
                    "chi2_tested", "chi2_removed", "chi2_removed_pct"]
 
 
-GROUP_COLUMNS = ["ate_all", "ate_kf", "ate_all_on_kf", "ate_all_on_nonkf", "rel_nonkf", "rel_kf", "keyframes", "culled",
-                 "kf_gap_mean", "points", "obs", "track_mean", "track_median", "track2_pct", "track5_pct",
-                 "pts_per_kf", "reproj_median", "gt_reproj_median", "gt_bad_pct", "ba_kf_ate", "ba_opt_ate", "ba_gap",
-                 "inliers_mean", "fused_obs", "chi2_removed_pct"]
+GROUP_COLUMNS = ["ate_all", "ate_kf", "ate_all_on_kf", "ate_all_on_nonkf", "ate_all_on_inner_nonkf", "rel_nonkf",
+                 "rel_kf", "keyframes", "culled", "kf_gap_mean", "points", "obs", "track_mean", "track_median",
+                 "track2_pct", "track5_pct", "pts_per_kf", "reproj_median", "gt_reproj_median", "gt_bad_pct",
+                 "ba_kf_ate", "ba_opt_ate", "ba_gap", "inliers_mean", "fused_obs", "chi2_removed_pct"]
 
 
 def group_seeds(rows: list[dict]) -> list[dict]:
@@ -743,7 +779,8 @@ def main(argv: list[str] | None = None) -> None:
     a = sub.add_parser("analyze", help="tables of finished run folders against ground truth")
     a.add_argument("--runs", nargs="+", required=True, help="run folders (Slam.save / slamkit run --out)")
     a.add_argument("--gt", default=None, help="ground truth (TUM format) when a run has no groundtruth_tum.txt")
-    a.add_argument("--csv", default=None, help="prefix of the CSV files (PREFIX_summary.csv, _octave, _depth, _chi2)")
+    a.add_argument("--csv", default=None,
+                   help="prefix of the CSV files (PREFIX_summary.csv, _octave, _depth, _track, _chi2, _seeds)")
     a.add_argument("--no-ba", action="store_true", help="skip the BA from the truth (the slow part)")
     a.add_argument("--group", action="store_true", help="also a table of mean ± SE over runs named NAME_sSEED")
     a.add_argument("--depth-edges", default=None,
@@ -765,6 +802,8 @@ def main(argv: list[str] | None = None) -> None:
     print(markdown(t["octave"]))
     print("## Reprojection error by metric depth\n")
     print(markdown(t["depth"]))
+    print("## Residuals by track length\n")
+    print(markdown(t["track"]))
     if t["chi2"]:
         print("## What the chi2 test removes\n")
         print(markdown(t["chi2"]))
@@ -772,11 +811,11 @@ def main(argv: list[str] | None = None) -> None:
         prefix = Path(args.csv)
         prefix.parent.mkdir(parents=True, exist_ok=True)
         write_csv(Path(f"{prefix}_summary.csv"), t["summary"], SUMMARY_COLUMNS)
-        for k in ("octave", "depth", "chi2"):
+        for k in ("octave", "depth", "track", "chi2"):
             write_csv(Path(f"{prefix}_{k}.csv"), t[k])
         if args.group:
             write_csv(Path(f"{prefix}_seeds.csv"), group_seeds(t["summary"]), ["run"] + GROUP_COLUMNS)
-        print(f"CSV: {prefix}_summary.csv, {prefix}_octave.csv, {prefix}_depth.csv, {prefix}_chi2.csv")
+        print(f"CSV: {prefix}_summary.csv, _octave.csv, _depth.csv, _track.csv, _chi2.csv")
 
 
 if __name__ == "__main__":

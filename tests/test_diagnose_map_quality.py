@@ -55,6 +55,9 @@ def test_map_counts_are_the_maps_own(run, tables):
     per_image = [rec.image(i).num_points3D for i in rec.reg_image_ids()]
     assert row["pts_per_kf"] == pytest.approx(np.mean(per_image))
     assert row["culled"] == summary["keyframes_culled"]
+    for table in ("octave", "depth", "track"):  # every observation in exactly one bin
+        assert sum(r["obs"] for r in tables[table]) == row["obs"], table
+    assert sum(r["points"] for r in tables["track"]) == row["points"]  # a point's track length is one bin
     frames = sorted(int(r["index"]) for r in dmq.load_run(run).frames if int(r["keyframe_image_id"]) >= 0)
     assert row["kf_gap_max"] == max(np.diff(frames))
 
@@ -131,6 +134,12 @@ def test_gt_reprojection_is_zero_on_exact_tracks_and_finds_a_wrong_match():
     assert err[bad] > 3.0  # a DLT of 4 views shares the 12 px among them; the wrong one keeps the most
     others = point_ids != point_ids[bad]
     assert np.nanmax(err[others]) < 1e-6
+
+
+def test_seeds_are_grouped_with_their_standard_error():
+    rows = [{"run": f"a_s{k}", "ate_all": v} for k, v in enumerate((1.0, 2.0, 3.0))] + [{"run": "b_s0", "ate_all": 5.0}]
+    g = {r["run"]: r for r in dmq.group_seeds(rows)}
+    assert g["a (n=3)"]["ate_all"] == "2 ± 0.58" and g["b (n=1)"]["ate_all"] == "5"
 
 
 def test_trajectory_errors_on_exact_trajectories():
