@@ -5,7 +5,8 @@ Two verbs:
 
 ``run SOURCE --out DIR [--mapper local|colmap] [--seed S] [--max-frames N] [--set KEY=VALUE ...]``
     One ordinary slamkit run (``Slam(source, SlamConfig().with_overrides(...)).run()``, then ``Slam.save``),
-    with two measurements that only watch: every step's result goes to ``DIR/steps.csv`` and every call of
+    with measurements that only watch: every step's result goes to ``DIR/steps.csv``, the step that made
+    each observation to ``DIR/provenance.csv`` (:func:`install_provenance_hook`), and every call of
     ORB-SLAM's outlier test (:func:`slamkit.stages.ba.remove_outlier_observations`, wrapped in this process
     only; its result is unchanged) is counted into ``DIR/chi2_tested.csv`` (observations tested, by context,
     octave and depth bin) and ``DIR/chi2_removed.csv`` (one row per observation removed). The library is not
@@ -15,7 +16,8 @@ Two verbs:
     Reads each finished run folder (``sparse/``, ``frames.csv``, ``summary.json``, ``trajectory_tum.txt``,
     ``keyframes_tum.txt``, ``groundtruth_tum.txt`` or ``--gt``, ``session/`` for keypoint sizes) and prints
     the tables below; writes ``PREFIX_summary.csv`` (one row per run), ``PREFIX_octave.csv``,
-    ``PREFIX_depth.csv``, ``PREFIX_track.csv`` and ``PREFIX_chi2.csv`` (one row per run and bin).
+    ``PREFIX_depth.csv``, ``PREFIX_track.csv``, ``PREFIX_origin.csv`` and ``PREFIX_chi2.csv`` (one row per
+    run and bin).
 
 Summary columns (one row per run; lengths in metres after the Sim(3) alignment, errors in pixels):
 
@@ -62,6 +64,12 @@ error (sd / sqrt(n)) over the seeds, n the number of runs.
 Track table (per run and track-length bin of the observation's point): obs, obs_pct, points, reproj_median,
 norm_median, gt_reproj_median, gt_bad_pct. Compare maps within a bin: a point adjusted from L observations keeps
 2L - 3 of their 2L residual dimensions, so shorter tracks show smaller residuals for the same keypoint noise.
+
+Origin table (``run`` only; per run and the step that last gave the observation its point: tracked = the new
+keyframe's tracking inliers, created = local mapping's new points, fused = local mapping's fusion,
+triangulator = COLMAP's triangulation, track completion and merging): obs, obs_pct, reproj_median,
+gt_reproj_median, gt_bad_pct, track_mean, reproj_median_4_8 and gt_bad_pct_4_8 (over points of 4-8
+observations only).
 
 Chi2 table (``run`` only; per run, context and octave or relative-depth bin): context is ``local_pass``
 (between the two local BA passes), ``local_maintain`` (after the last local pass) or ``global`` (after a
@@ -206,6 +214,47 @@ def install_chi2_hook(log: Chi2Log):
     return undo
 
 
+def install_provenance_hook(origin: dict):
+    """Wrap ``SlamMap.add_observations`` and ``SlamMap.add_point`` (on the class, this process only) so that
+    ``origin[(image id, point2D idx)]`` names the step that last gave the observation a 3-D point: "tracked"
+    (the new keyframe's 2D-3D inliers from tracking, added by either mapper's ``step``), "fused" (local
+    mapping's fusion), "created" (local mapping's new points, both observations), or the caller's name.
+    Observations never named here came from COLMAP's triangulator (its new points, track completion and
+    merging; both mappers complete and merge after each BA). Returns a function that undoes the wrap."""
+    from slamkit.map import SlamMap
+
+    add_obs, add_pt = SlamMap.add_observations, SlamMap.add_point
+
+    def _caller() -> str:
+        name = sys._getframe(2).f_code.co_name
+        return {"step": "tracked", "_fuse_into": "fused"}.get(name, name)
+
+    def add_observations(self, image_id, point2D_idxs, point3D_ids):
+        tag = _caller()
+        before = self.point3D_ids(image_id).copy() if len(point2D_idxs) else None
+        n = add_obs(self, image_id, point2D_idxs, point3D_ids)
+        if n:
+            after = self.point3D_ids(image_id)
+            for j in np.flatnonzero((before < 0) & (after >= 0)).tolist():
+                origin[(int(image_id), int(j))] = tag
+        return n
+
+    def add_point(self, xyz, observations, color):
+        name = sys._getframe(1).f_code.co_name
+        tag = "created" if name in ("<listcomp>", "step") else name
+        pid = add_pt(self, xyz, observations, color)
+        for image_id, j in observations:
+            origin[(int(image_id), int(j))] = tag
+        return pid
+
+    SlamMap.add_observations, SlamMap.add_point = add_observations, add_point
+
+    def undo():
+        SlamMap.add_observations, SlamMap.add_point = add_obs, add_pt
+
+    return undo
+
+
 STEP_COLUMNS = ["frame_index", "timestamp", "status", "segment", "is_keyframe", "matches", "inliers",
                 "reference_keyframe", "num_keyframes", "num_points", "ba", "new_points", "created", "culled",
                 "fused", "observations_added"]
@@ -231,8 +280,8 @@ def record_run(source_spec: str, out: Path, mapper: str = "local", seed: int = 0
     pycolmap.logging.minloglevel = 2
     config = SlamConfig().with_overrides(seed=seed, **{"mapper.method": mapper}, **(overrides or {}))
     source = open_source(source_spec, max_frames=max_frames)
-    chi2 = Chi2Log()
-    undo = install_chi2_hook(chi2)
+    chi2, origin = Chi2Log(), {}
+    undo_chi2, undo_origin = install_chi2_hook(chi2), install_provenance_hook(origin)
     rows = []
     try:
         slam = Slam(source, config)
@@ -247,13 +296,18 @@ def record_run(source_spec: str, out: Path, mapper: str = "local", seed: int = 0
                 log(f"  {source_spec} [{mapper}]: frame {r.frame_index}, {r.num_keyframes} keyframes", flush=True)
         slam.finish()
     finally:
-        undo()
+        undo_chi2()
+        undo_origin()
     slam.save(out)
     with open(out / "steps.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(STEP_COLUMNS)
         w.writerows(rows)
     chi2.write(out)
+    with open(out / "provenance.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["image_id", "point2D_idx", "origin"])
+        w.writerows([i, j, o] for (i, j), o in sorted(origin.items()))
     (out / "diagnose_run.json").write_text(json.dumps({"source": source_spec, "mapper": mapper, "seed": seed,
                                                         "max_frames": max_frames, "set": overrides or {}}))
     return out
@@ -408,6 +462,8 @@ class Observations:
     """reprojection error (px) at the true poses, the point triangulated (DLT) from them; NaN without truth"""
     track_len: np.ndarray
     """track length of the observation's point"""
+    point2D_idx: np.ndarray
+    """keypoint index of the observation in its keyframe"""
 
 
 def gt_cam_from_world(d: RunData) -> dict:
@@ -455,7 +511,7 @@ def observations(d: RunData, gt_cfw: dict) -> Observations:
     counts = np.bincount(np.searchsorted(uniq_pids, point_ids), minlength=len(uniq_pids))
     track_len = counts[np.searchsorted(uniq_pids, point_ids)]
     gt_err = _gt_reprojection(image_ids, point_ids, xy, uniq_pids, counts, gt_cfw, cam)
-    return Observations(image_ids, point_ids, err, depth, scale, gt_err, track_len)
+    return Observations(image_ids, point_ids, err, depth, scale, gt_err, track_len, pidx)
 
 
 def _gt_reprojection(image_ids, point_ids, xy, uniq_pids, counts, gt_cfw: dict, cam) -> np.ndarray:
@@ -653,6 +709,34 @@ def track_rows(name: str, obs: Observations) -> list[dict]:
     return rows
 
 
+def origin_rows(d: RunData, obs: Observations) -> list[dict]:
+    """Residuals by the step that made each observation (``provenance.csv`` of ``run``; see
+    :func:`install_provenance_hook`); "triangulator": never named by the hook (COLMAP's triangulation, track
+    completion and merging). reproj_median_4_8 / gt_bad_pct_4_8: the same over points of 4-8 observations
+    only (the track-length mix differs between origins)."""
+    path = d.path / "provenance.csv"
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        origin = {(int(r["image_id"]), int(r["point2D_idx"])): r["origin"] for r in csv.DictReader(f)}
+    tags = np.array([origin.get((int(i), int(j)), "triangulator") for i, j in zip(obs.image_id, obs.point2D_idx)])
+    bound = np.sqrt(CHI2) * np.where(np.isfinite(obs.scale), obs.scale, 1.0)
+    mid = (obs.track_len >= 4) & (obs.track_len <= 8)
+    rows = []
+    for tag in sorted(set(tags.tolist())):
+        m = tags == tag
+        g, gm = m & np.isfinite(obs.gt_err), m & mid & np.isfinite(obs.gt_err)
+        rows.append({"run": d.path.name, "origin": tag, "obs": int(m.sum()), "obs_pct": 100.0 * m.sum() / len(m),
+                     "reproj_median": float(np.median(obs.err[m])),
+                     "gt_reproj_median": float(np.median(obs.gt_err[g])) if g.any() else float("nan"),
+                     "gt_bad_pct": 100.0 * float((obs.gt_err[g] > bound[g]).mean()) if g.any() else float("nan"),
+                     "track_mean": float(obs.track_len[m].mean()),
+                     "reproj_median_4_8": float(np.median(obs.err[m & mid])) if (m & mid).any() else float("nan"),
+                     "gt_bad_pct_4_8": (100.0 * float((obs.gt_err[gm] > bound[gm]).mean()) if gm.any()
+                                        else float("nan"))})
+    return rows
+
+
 def keyframe_scale(d: RunData) -> float:
     """The scale of the Sim(3) fitted to the map's keyframe centres (map units -> metres)."""
     gt = gt_cam_from_world(d)
@@ -665,7 +749,7 @@ def keyframe_scale(d: RunData) -> float:
 def analyze(paths: list, gt_file=None, with_ba: bool = True, depth_edges=None, log=print) -> dict:
     """Every table for the run folders ``paths``: {"summary": [...], "octave": [...], "depth": [...],
     "chi2": [...]} (lists of row dicts)."""
-    out = {"summary": [], "octave": [], "depth": [], "track": [], "chi2": []}
+    out = {"summary": [], "octave": [], "depth": [], "track": [], "origin": [], "chi2": []}
     edges = None if depth_edges is None else np.asarray(depth_edges, np.float64)
     for p in paths:
         d = load_run(p, gt_file)
@@ -689,6 +773,7 @@ def analyze(paths: list, gt_file=None, with_ba: bool = True, depth_edges=None, l
         out["octave"] += octave_rows(name, obs)
         out["depth"] += depth_rows(name, obs, s, edges)
         out["track"] += track_rows(name, obs)
+        out["origin"] += origin_rows(d, obs)
         out["chi2"] += crows
         log(f"  analysed {p}", flush=True)
     return out
@@ -804,6 +889,9 @@ def main(argv: list[str] | None = None) -> None:
     print(markdown(t["depth"]))
     print("## Residuals by track length\n")
     print(markdown(t["track"]))
+    if t["origin"]:
+        print("## Residuals by the step that made the observation\n")
+        print(markdown(t["origin"]))
     if t["chi2"]:
         print("## What the chi2 test removes\n")
         print(markdown(t["chi2"]))
@@ -811,7 +899,7 @@ def main(argv: list[str] | None = None) -> None:
         prefix = Path(args.csv)
         prefix.parent.mkdir(parents=True, exist_ok=True)
         write_csv(Path(f"{prefix}_summary.csv"), t["summary"], SUMMARY_COLUMNS)
-        for k in ("octave", "depth", "track", "chi2"):
+        for k in ("octave", "depth", "track", "origin", "chi2"):
             write_csv(Path(f"{prefix}_{k}.csv"), t[k])
         if args.group:
             write_csv(Path(f"{prefix}_seeds.csv"), group_seeds(t["summary"]), ["run"] + GROUP_COLUMNS)

@@ -28,10 +28,12 @@ SPEC = "synthetic:default?frames=30&noise=1"
 def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("diagnose") / "run"
     import slamkit.stages.ba as ba_mod
+    from slamkit.map import SlamMap
 
-    original = ba_mod.remove_outlier_observations
+    original = (ba_mod.remove_outlier_observations, SlamMap.add_observations, SlamMap.add_point)
     dmq.record_run(SPEC, out, "local", seed=0, log=lambda *a, **k: None)
-    assert ba_mod.remove_outlier_observations is original  # the hook is gone after the run
+    # the hooks are gone after the run
+    assert (ba_mod.remove_outlier_observations, SlamMap.add_observations, SlamMap.add_point) == original
     return out
 
 
@@ -58,6 +60,10 @@ def test_map_counts_are_the_maps_own(run, tables):
     for table in ("octave", "depth", "track"):  # every observation in exactly one bin
         assert sum(r["obs"] for r in tables[table]) == row["obs"], table
     assert sum(r["points"] for r in tables["track"]) == row["points"]  # a point's track length is one bin
+    origins = {r["origin"]: r for r in tables["origin"]}
+    assert sum(r["obs"] for r in origins.values()) == row["obs"]
+    assert {"tracked", "created"} <= set(origins)  # local mapping: tracking inliers and new points
+    assert origins["created"]["gt_reproj_median"] < 1.0  # rendered frames: exact tracks, keypoint noise only
     frames = sorted(int(r["index"]) for r in dmq.load_run(run).frames if int(r["keyframe_image_id"]) >= 0)
     assert row["kf_gap_max"] == max(np.diff(frames))
 
