@@ -12,7 +12,7 @@ Two verbs:
     octave and depth bin) and ``DIR/chi2_removed.csv`` (one row per observation removed). The library is not
     changed: a run folder made by ``slamkit run`` can be analysed too, without the chi2 and steps columns.
 
-``analyze --runs DIR [DIR ...] [--gt FILE] [--csv PREFIX] [--no-ba]``
+``analyze --runs DIR [DIR ...] [--gt FILE] [--csv PREFIX] [--no-ba] [--group]``
     Reads each finished run folder (``sparse/``, ``frames.csv``, ``summary.json``, ``trajectory_tum.txt``,
     ``keyframes_tum.txt``, ``groundtruth_tum.txt`` or ``--gt``, ``session/`` for keypoint sizes) and prints
     the tables below; writes ``PREFIX_summary.csv`` (one row per run), ``PREFIX_octave.csv``,
@@ -861,11 +861,12 @@ def main(argv: list[str] | None = None) -> None:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--max-frames", type=int, default=None)
     r.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="a SlamConfig field")
-    a = sub.add_parser("analyze", help="tables of finished run folders against ground truth")
+    a = sub.add_parser("analyze", help="tables of finished run folders against ground truth",
+                       epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     a.add_argument("--runs", nargs="+", required=True, help="run folders (Slam.save / slamkit run --out)")
     a.add_argument("--gt", default=None, help="ground truth (TUM format) when a run has no groundtruth_tum.txt")
     a.add_argument("--csv", default=None,
-                   help="prefix of the CSV files (PREFIX_summary.csv, _octave, _depth, _track, _chi2, _seeds)")
+                   help="prefix of the CSV files (PREFIX_summary.csv, _octave, _depth, _track, _origin, _chi2, _seeds)")
     a.add_argument("--no-ba", action="store_true", help="skip the BA from the truth (the slow part)")
     a.add_argument("--group", action="store_true", help="also a table of mean ± SE over runs named NAME_sSEED")
     a.add_argument("--depth-edges", default=None,
