@@ -238,6 +238,7 @@ class Slam:
             st.cursor += 1
             self.last_frame, self.last_features = frame, ff
             record = FrameRecord(frame.index, frame.frame_id, frame.timestamp, LOST)
+            record.read_from(frame.fingerprint)  # what was read, hashed as it was read (issue 50)
             st.records.append(record)
             if st.segment is None:
                 result = self._initialize(ff, record, timings)
