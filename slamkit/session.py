@@ -10,7 +10,8 @@ continues at the next frame exactly as the uninterrupted run would::
                             initializer's window, the local map and the bundle-adjustment counter
     state.npz               per-frame relative poses (N, 4, 4), the local map (point ids, positions,
                             descriptors), the last tracked point ids, the initializer's buffered features and
-                            window matches, the PnP correspondences of the tracked frames (final pose refinement)
+                            window matches, the PnP correspondences of the tracked frames (final pose refinement),
+                            the rotation phase's previous frame (its features: a pan's next rotation reference)
     segment_XX/model/       the segment's pycolmap Reconstruction (COLMAP binary, ``pycolmap.Reconstruction(d)``)
     segment_XX/arrays.npz   keyframe features (keypoints, descriptors, scores, sizes), colours, thumbnails,
                             relocalization signatures, the features of frames ``finish()`` tracks again, and the
@@ -141,6 +142,7 @@ def _write_state_files(slam: "Slam", folder: Path) -> None:
         "self_calibration": slam.calibrator.state() if getattr(slam, "calibrator", None) is not None else None,
         "camera_dist": list(slam.camera.dist),  # a given camera's k1 estimated in the run (calibrate_radial)
         "pose_refiner": _refiner_to(slam.pose_refiner, arrays),
+        "rotation_phase": _rotation_phase_to(slam.rotation_phase, arrays),
     }
     np.savez(folder / "state.npz", **arrays)
     (folder / SESSION_FILE).write_text(json.dumps(meta, indent=1, default=_json_default))
@@ -182,6 +184,12 @@ def _refiner_to(refiner, arrays: dict) -> list[dict]:
     _put_list(arrays, "refine_xy", xy)
     _put_list(arrays, "refine_ids", ids)
     return entries
+
+
+def _rotation_phase_to(phase, arrays: dict) -> dict:
+    """The rotation phase's previous frame (``RotationPhase.state``): a lost frame's second rotation reference."""
+    previous = phase.state()
+    return {"previous": _frame_features_to([previous] if previous is not None else [], "rotation_previous", arrays)}
 
 
 def _window_to(window: InitializerWindow, arrays: dict) -> dict:
@@ -475,6 +483,10 @@ def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
     slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
     if meta.get("pose_refiner") is not None:  # sessions saved before it: the earlier frames keep tracked poses
         slam.pose_refiner.restore(meta["pose_refiner"], _get_list(arrays, "refine_xy"), _get_list(arrays, "refine_ids"))
+    rmeta = meta.get("rotation_phase")  # sessions saved before issue 50: none (the keyframe alone then)
+    if rmeta is not None:
+        previous = _frame_features_from(rmeta["previous"], "rotation_previous", arrays)
+        slam.rotation_phase.restore(previous[0] if previous else None)
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(
         _frame_features_from(imeta["frames"], "init_frames", arrays),
