@@ -228,3 +228,38 @@ def test_fingerprints_survive_a_resume_bit_for_bit(folders, tmp_path):
     assert [(r.file, str(r.file_bytes), r.sha256) for r in slam.records] == \
            [(rows[k]["file"], rows[k]["bytes"], rows[k]["sha256"]) for k in range(CUT)]
     assert np.all([r.width == 640 and r.height == 480 for r in slam.records])
+
+
+def _video(path: Path, noise: float, seed: int) -> Path:
+    """The rendered ``sideways`` motion (8 frames, 320x240) as an MJPG video."""
+    import cv2
+
+    src = synthetic_source("sideways", frames=8, noise=noise, seed=seed, scale=0.5)
+    path.parent.mkdir(parents=True)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
+    assert writer.isOpened()
+    for i in range(len(src)):
+        writer.write(cv2.cvtColor(src[i].color, cv2.COLOR_RGB2BGR))
+    writer.release()
+    return path
+
+
+def test_a_video_frame_is_fingerprinted_by_its_decoded_pixels_and_proven_on_resume(tmp_path):
+    """A video's frames: the file's name and size, and each decoded frame's own SHA-256 (of the BGR pixels as
+    decoded); resumed on another video of the same name, length and size, refused naming the frame."""
+    a = _video(tmp_path / "a" / "clip.avi", noise=0.0, seed=0)
+    b = _video(tmp_path / "b" / "clip.avi", noise=3.0, seed=1)
+    slam = Slam(str(a), SlamConfig().with_overrides(camera="300"))
+    slam.run(max_steps=5)
+    recs = slam.records
+    assert [r.file for r in recs] == ["clip.avi"] * 5 and {r.file_bytes for r in recs} == {a.stat().st_size}
+    assert [(r.width, r.height) for r in recs] == [(320, 240)] * 5
+    decoded = [np.ascontiguousarray(slam.source[k].color[..., ::-1]) for k in range(5)]  # RGB back to BGR
+    assert [r.sha256 for r in recs] == [hashlib.sha256(d).hexdigest() for d in decoded]
+    assert len({r.sha256 for r in recs}) == 5  # every frame its own
+    session = save_session(slam, tmp_path / "session")
+    assert Slam.resume(session, source=str(a))._cursor == 5
+    with pytest.raises(SessionError, match=rf"frame 0 \(clip.avi\) is not the image the run read: frame 0 of {b} has "
+                                           r"other content than the run read \(SHA-256 differs; \d+ bytes, the run "
+                                           r"read \d+\); so are frames 1 .*5 of the 5 frames processed differ"):
+        Slam.resume(session, source=str(b))
