@@ -33,6 +33,8 @@ back until the current SLAM step is complete, so the state is always that of who
 Before anything is read, :func:`slamkit.io.saved.check_session` checks the files against the sizes and
 checksums recorded when the session was saved, and the COLMAP binaries, JSON and ``.npz`` files against their
 formats: a truncated or damaged file is a SessionError naming it, never a hang inside pycolmap's reader.
+Then the source proves it is the one the run read (issue 50, :func:`check_frames_read`): its kind and identity,
+and every processed frame measured again against the fingerprint taken when the run read it.
 """
 
 from __future__ import annotations
@@ -254,7 +256,9 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     """Rebuild the Slam saved in ``path`` (a session folder or a run folder holding ``session/``).
 
     source: the frame source (or spec); None opens the spec the session recorded. It must be the source the
-        session was recorded on (same name, frame count, frame ids and timestamps, camera): else SessionError.
+        session was recorded on (same kind, name, frame count, frame ids and timestamps, camera, and every frame
+        processed so far the image the run read: :func:`check_frames_read`): else SessionError, before any
+        frame is processed.
     config: None = the saved config; a dict = overrides of the saved config (``SlamConfig.with_overrides``
         keys: the explicit way to change a parameter); a SlamConfig (or preset name) must equal the saved one.
         ``features``, ``matcher`` and ``frame_skip`` cannot change (ConfigError).
@@ -434,7 +438,8 @@ def check_frames_read(meta: dict, source, indices: np.ndarray, folder: Path) -> 
     without either (a session folder alone) is refused when its source has files: nothing proves them.
     Returns the fingerprints proven that the session itself did not hold (index -> Fingerprint)."""
     rows, origin = _recorded_frames(meta, folder)
-    read = [r for r in rows if r["status"] != "error" and not r["unreadable"]]
+    read = [r for r in rows if (r.get("sha256") or "").strip()  # a frame a stage failed on too: it was read
+            or (r["status"] != "error" and not r["unreadable"])]
     unrecorded = [r for r in read if not (r.get("sha256") or "").strip()
                   and frame_file(source, int(indices[r["index"]])) is not None]
     if unrecorded and not origin:
