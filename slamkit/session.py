@@ -42,6 +42,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import dataclasses
+import os
 import hashlib
 import json
 import tempfile
@@ -373,17 +374,18 @@ _LAYOUTS = ("tum", "kitti", "7scenes", "euroc", "folder")
 
 def source_kind(source) -> str:
     """What kind of source it is: its layout (``tum``, ``kitti``, ``7scenes``, ``euroc``, ``folder``), ``video``,
-    ``synthetic`` (rendered), else its class's name."""
+    ``synthetic`` (rendered), or "" for a source of the caller's own (a wrapper of one of these, say: its
+    kind is not known, and not compared)."""
     cls = type(source).__name__
     if cls in ("VideoSource", "SyntheticSource"):
         return "video" if cls == "VideoSource" else "synthetic"
     prefix = str(getattr(source, "name", "")).split("/", 1)[0]
-    return prefix if prefix in _LAYOUTS and cls == "ImageListSource" else cls
+    return prefix if prefix in _LAYOUTS and cls == "ImageListSource" else ""
 
 
 def _check_source(saved: dict, source, folder: Path) -> None:
     now = source_identity(source)
-    if saved.get("kind") and saved["kind"] != now["kind"]:  # sessions before issue 50 did not record it
+    if saved.get("kind") and now["kind"] and saved["kind"] != now["kind"]:  # none in sessions before issue 50
         raise SessionError(f"{folder}: the session was recorded on a {saved['kind']} source ({saved['name']!r}), "
                            f"this is a {now['kind']} source ({now['name']!r}): give the source the run was made on")
     problems = []
@@ -456,8 +458,8 @@ def check_frames_read(meta: dict, source, indices: np.ndarray, folder: Path) -> 
         if why:
             differ.append((r, why))
         elif origin != "session" and getattr(source, "paths", None) is not None and str(r.get("width")).isdigit():
-            proven[r["index"]] = Fingerprint(r["file"], int(r["bytes"]) if str(r["bytes"]).isdigit() else -1,
-                                             int(r["width"]), int(r["height"]), r["sha256"])
+            size = str(r["bytes"]) if str(r["bytes"]).isdigit() else os.stat(frame_file(source, i)).st_size
+            proven[r["index"]] = Fingerprint(r["file"], int(size), int(r["width"]), int(r["height"]), r["sha256"])
     if differ:
         (r, why), rest = differ[0], differ[1:]
         name = r.get("file") or "?"

@@ -211,7 +211,8 @@ def test_a_session_of_an_older_slamkit_is_proven_by_frames_csv_or_refused(folder
         Slam.resume(old, source=str(src), config={"max_frames": FRAMES})
     _swap(files[1], files[2])
     slam = Slam.resume(old, source=str(src), config={"max_frames": FRAMES})
-    assert [r.sha256 for r in slam.records] == [hashlib.sha256(p.read_bytes()).hexdigest() for p in files[:CUT]]
+    assert [(r.sha256, r.file_bytes) for r in slam.records] == [(hashlib.sha256(p.read_bytes()).hexdigest(),
+                                                                  p.stat().st_size) for p in files[:CUT]]
     bare = tmp_path / "bare"
     save_session(slam, bare)
     _as_before_issue_50(bare)
