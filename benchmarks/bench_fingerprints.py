@@ -99,7 +99,8 @@ def video_resume_cost(source, frames: int) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--images", default="default", help="an image source (folder or dataset): read-time and resume cost")
+    ap.add_argument("--images", default="default",
+                    help="an image source (folder or dataset): read-time and resume cost")
     ap.add_argument("--video", default=None, help="a video file: the per-frame hash of its decoded frames")
     ap.add_argument("--frames", type=int, default=200, help="frames timed for the read-time cost")
     ap.add_argument("--resume-frames", type=int, default=1000, help="frames of the resume check")

@@ -86,6 +86,13 @@ class FrameRecord:
     def __post_init__(self) -> None:
         self.status = FrameStatus(self.status)
 
+    @classmethod
+    def of_frame(cls, frame, status: FrameStatus) -> "FrameRecord":
+        """The record of a :class:`~slamkit.types.Frame` just read, with its fingerprint."""
+        record = cls(frame.index, frame.frame_id, frame.timestamp, status)
+        record.read_from(frame.fingerprint)
+        return record
+
     @property
     def fingerprint(self) -> Fingerprint | None:
         """What the frame was read from (None: nothing recorded)."""

@@ -149,7 +149,8 @@ def changed(recorded: dict | Fingerprint, source, i: int, now: Fingerprint | Non
     path = path if path is not None else now.file
     where = f"frame {int(source.frame_ids[i])} of {path}" if video else str(path)
     if (str(now.width), str(now.height)) != (str(recorded.get("width")), str(recorded.get("height"))):
-        return f"{where} is {now.width}x{now.height} pixels, the run saw {recorded.get('width')}x{recorded.get('height')}"
+        return (f"{where} is {now.width}x{now.height} pixels, the run saw "
+                f"{recorded.get('width')}x{recorded.get('height')}")
     other_size = bool(size) and size != "-1" and now.bytes >= 0 and str(now.bytes) != size
     if now.sha256 != sha or other_size:
         sizes = f"; {now.bytes} bytes, the run read {size}" if other_size else ""
