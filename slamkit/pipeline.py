@@ -235,7 +235,7 @@ class Slam:
             frame, ff, timings["read"], timings["features"] = loaded
             st.cursor += 1
             self.last_frame, self.last_features = frame, ff
-            record = FrameRecord(frame.index, frame.frame_id, frame.timestamp, LOST)
+            record = FrameRecord.of_frame(frame, LOST)  # with its fingerprint, measured as it was read (issue 50)
             st.records.append(record)
             if st.segment is None:
                 result = self._initialize(ff, record, timings)

@@ -75,8 +75,16 @@ class RotationPhase:
         """Matches a lost frame with the last keyframe (:meth:`track_lost`): the run's matcher, else NN."""
         self.previous: FrameFeatures | None = None
         """The last frame posed in a map segment (by PnP or by rotation): the next lost frame's second rotation
-        reference, DT-SLAM's 2-D-only keyframe in its smallest form. Not saved in sessions (a resumed run starts
-        with the keyframe alone)."""
+        reference, DT-SLAM's 2-D-only keyframe in its smallest form. Saved in sessions (:meth:`state`,
+        :meth:`restore`): a run resumed in the middle of a pan chains its next frame to it as the running one does."""
+
+    def state(self) -> FrameFeatures | None:
+        """What a session saves of the phase: :attr:`previous` (the only state it keeps between frames)."""
+        return self.previous
+
+    def restore(self, previous: FrameFeatures | None) -> None:
+        """The phase as :meth:`state` saved it."""
+        self.previous = previous
 
     def posed_by_pnp(self, state: SlamState, ff: FrameFeatures, record: FrameRecord, num_inliers: int) -> dict:
         """A frame tracking (or relocalization) posed by PnP against the map: its motion model is "general"

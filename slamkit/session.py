@@ -10,7 +10,8 @@ continues at the next frame exactly as the uninterrupted run would::
                             initializer's window, the local map and the bundle-adjustment counter
     state.npz               per-frame relative poses (N, 4, 4), the local map (point ids, positions,
                             descriptors), the last tracked point ids, the initializer's buffered features and
-                            window matches, the PnP correspondences of the tracked frames (final pose refinement)
+                            window matches, the PnP correspondences of the tracked frames (final pose refinement),
+                            the rotation phase's previous frame (its features: a pan's next rotation reference)
     segment_XX/model/       the segment's pycolmap Reconstruction (COLMAP binary, ``pycolmap.Reconstruction(d)``)
     segment_XX/arrays.npz   keyframe features (keypoints, descriptors, scores, sizes), colours, thumbnails,
                             relocalization signatures, the features of frames ``finish()`` tracks again, and the
@@ -32,13 +33,14 @@ back until the current SLAM step is complete, so the state is always that of who
 Before anything is read, :func:`slamkit.io.saved.check_session` checks the files against the sizes and
 checksums recorded when the session was saved, and the COLMAP binaries, JSON and ``.npz`` files against their
 formats: a truncated or damaged file is a SessionError naming it, never a hang inside pycolmap's reader.
+Then the source proves it is the one the run read (issue 50, :func:`check_frames_read`): its kind and identity,
+and every processed frame measured again against the fingerprint taken when the run read it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import json
 import tempfile
 import time
@@ -62,6 +64,7 @@ from .loop_verification import ConsistentGroup
 from .map import CAMERA_ID, Keyframe, SlamMap, graph_pairs, max_point3D_id
 from .run_camera import clamped, with_radial
 from .map import max_point3D_id as _max_point3D_id  # noqa: F401  (its name here before it moved to map)
+from .source_proof import check_frames_read, check_source as _check_source, source_identity  # noqa: F401
 from .stages.initializer import InitializerWindow
 from .state import FrameRecord, RecentPoints, Segment, SlamState
 
@@ -138,6 +141,7 @@ def _write_state_files(slam: "Slam", folder: Path) -> None:
         "self_calibration": slam.calibrator.state() if getattr(slam, "calibrator", None) is not None else None,
         "camera_dist": list(slam.camera.dist),  # a given camera's k1 estimated in the run (calibrate_radial)
         "pose_refiner": _refiner_to(slam.pose_refiner, arrays),
+        "rotation_phase": _rotation_phase_to(slam.rotation_phase, arrays),
     }
     np.savez(folder / "state.npz", **arrays)
     (folder / SESSION_FILE).write_text(json.dumps(meta, indent=1, default=_json_default))
@@ -179,6 +183,12 @@ def _refiner_to(refiner, arrays: dict) -> list[dict]:
     _put_list(arrays, "refine_xy", xy)
     _put_list(arrays, "refine_ids", ids)
     return entries
+
+
+def _rotation_phase_to(phase, arrays: dict) -> dict:
+    """The rotation phase's previous frame (``RotationPhase.state``): a lost frame's second rotation reference."""
+    previous = phase.state()
+    return {"previous": _frame_features_to([previous] if previous is not None else [], "rotation_previous", arrays)}
 
 
 def _window_to(window: InitializerWindow, arrays: dict) -> dict:
@@ -243,7 +253,9 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     """Rebuild the Slam saved in ``path`` (a session folder or a run folder holding ``session/``).
 
     source: the frame source (or spec); None opens the spec the session recorded. It must be the source the
-        session was recorded on (same name, frame count, frame ids and timestamps, camera): else SessionError.
+        session was recorded on (same kind, name, frame count, frame ids and timestamps, camera, and every frame
+        processed so far the image the run read: :func:`check_frames_read`): else SessionError, before any
+        frame is processed.
     config: None = the saved config; a dict = overrides of the saved config (``SlamConfig.with_overrides``
         keys: the explicit way to change a parameter); a SlamConfig (or preset name) must equal the saved one.
         ``features``, ``matcher`` and ``frame_skip`` cannot change (ConfigError).
@@ -283,11 +295,18 @@ def load_session(path: str | Path, source=None, config: SlamConfig | dict | str 
     if cursor > len(slam.indices):
         raise ConfigError(f"{folder}: the session processed {cursor} frames but this configuration selects "
                           f"{len(slam.indices)} (max_frames={cfg.max_frames}); raise max_frames")
+    try:
+        proven = check_frames_read(meta, slam.source, slam.indices, folder)  # before one frame is processed
+    except (KeyError, TypeError, ValueError, IndexError) as e:
+        raise _unreadable(folder, e) from None
     with _npz(folder / "state.npz") as arrays:
         try:
             _restore(slam, meta, arrays, folder)
         except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:  # edited by hand, or older
             raise _unreadable(folder, e) from None
+    for rec in slam.state.records:  # a session of an older slamkit: the fingerprints frames.csv held, now proven
+        if not rec.sha256 and rec.index in proven:
+            rec.read_from(proven[rec.index])
     if not slam.done:
         if slam.finished:  # saved after finish() without the state before it (sessions of older versions)
             raise SessionError(
@@ -334,35 +353,6 @@ def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def source_identity(source) -> dict:
-    """Name, frame count, a digest of frame ids and timestamps, and the intrinsics of a frame source."""
-    h = hashlib.sha256()
-    for name, dtype in (("frame_ids", np.int64), ("timestamps", np.float64)):
-        values = getattr(source, name, None)
-        if values is not None:
-            h.update(np.ascontiguousarray(np.asarray(values, dtype)).tobytes())
-    cam = getattr(source, "camera", None)
-    return {"name": str(getattr(source, "name", type(source).__name__)), "frames": int(len(source)),
-            "digest": h.hexdigest()[:16], "camera": cam.to_dict() if cam is not None else None}
-
-
-def _check_source(saved: dict, source, folder: Path) -> None:
-    now = source_identity(source)
-    problems = []
-    if now["name"] != saved["name"]:
-        problems.append(f"name {saved['name']!r} vs {now['name']!r}")
-    if now["frames"] != saved["frames"]:
-        problems.append(f"{saved['frames']} frames vs {now['frames']}")
-    elif now["digest"] != saved["digest"]:
-        problems.append("different frame ids or timestamps")
-    if now["camera"] != saved["camera"]:
-        problems.append(f"intrinsics {saved['camera']} vs {now['camera']}")
-    if problems:
-        raise SessionError(f"{folder}: the session was recorded on another source ({'; '.join(problems)}): "
-                           f"session {saved['name']!r} ({saved['frames']} frames), given {now['name']!r} "
-                           f"({now['frames']} frames)")
-
-
 def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
     slam.state = _state_from(meta, arrays, folder, slam.camera)
     slam.bundle_adjuster.restore(meta["bundle_adjuster"])
@@ -379,6 +369,10 @@ def _restore(slam: "Slam", meta: dict, arrays: dict, folder: Path) -> None:
     slam.loop_closer.rebuild(slam.state.segments)  # derived from the keyframes: the same bags, the same scores
     if meta.get("pose_refiner") is not None:  # sessions saved before it: the earlier frames keep tracked poses
         slam.pose_refiner.restore(meta["pose_refiner"], _get_list(arrays, "refine_xy"), _get_list(arrays, "refine_ids"))
+    rmeta = meta.get("rotation_phase")  # sessions saved before issue 50: none (the keyframe alone then)
+    if rmeta is not None:
+        previous = _frame_features_from(rmeta["previous"], "rotation_previous", arrays)
+        slam.rotation_phase.restore(previous[0] if previous else None)
     imeta = meta["initializer"]
     slam.initializer.restore(InitializerWindow(
         _frame_features_from(imeta["frames"], "init_frames", arrays),

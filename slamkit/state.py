@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from .types import Trajectory
+from .types import Fingerprint, Trajectory
 
 if TYPE_CHECKING:  # pragma: no cover
     from .features import FrameFeatures
@@ -71,9 +71,40 @@ class FrameRecord:
     """Index of the first frame of the frame's rotation chain (-1: none)."""
     rotation_ref: int = -1
     """Index of the rotation keyframe its orientation was measured against (-1: none)."""
+    file: str = ""
+    """The frame's :class:`~slamkit.types.Fingerprint`, measured when it was read (issue 50): the file's name
+    (a video's), "" when the source has none (rendered) or the frame could not be read; ..."""
+    file_bytes: int = -1
+    """... its size in bytes (-1: none); ..."""
+    width: int = 0
+    """... the image's width and height in pixels; ..."""
+    height: int = 0
+    sha256: str = ""
+    """... and the SHA-256 of what was read ("" when none). Saved in sessions and ``frames.csv``; export and
+    resume compare the source with it."""
 
     def __post_init__(self) -> None:
         self.status = FrameStatus(self.status)
+
+    @classmethod
+    def of_frame(cls, frame, status: FrameStatus) -> "FrameRecord":
+        """The record of a :class:`~slamkit.types.Frame` just read, with its fingerprint."""
+        record = cls(frame.index, frame.frame_id, frame.timestamp, status)
+        record.read_from(frame.fingerprint)
+        return record
+
+    @property
+    def fingerprint(self) -> Fingerprint | None:
+        """What the frame was read from (None: nothing recorded)."""
+        if not self.sha256:
+            return None
+        return Fingerprint(self.file, int(self.file_bytes), int(self.width), int(self.height), self.sha256)
+
+    def read_from(self, fingerprint: Fingerprint | None) -> None:
+        """Record what the frame was read from (nothing for None)."""
+        if fingerprint is not None:
+            self.file, self.file_bytes, self.sha256 = fingerprint.file, fingerprint.bytes, fingerprint.sha256
+            self.width, self.height = fingerprint.width, fingerprint.height
 
 
 @dataclass(eq=False)

@@ -2,12 +2,46 @@
 
 from __future__ import annotations
 
+import hashlib
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .camera import Intrinsics
+
+
+@dataclass(frozen=True)
+class Fingerprint:
+    """What a frame was read from, measured when it was read (issue 50): the file's name (``file``, printable:
+    :func:`slamkit.errors.shown`), its size in bytes, the image's ``width`` x ``height`` in pixels and a SHA-256.
+
+    An image file: the SHA-256 of the file's bytes, hashed from the bytes the source decoded (no second read).
+    A video: ``file`` and ``bytes`` are the video file's, the SHA-256 is that of the decoded frame's pixels
+    (uint8 BGR as FFmpeg delivered them), so every frame has its own (the container holds all frames; its
+    frame's time is the frame's timestamp). Export and resume compare these with the source as it is then.
+    """
+
+    file: str
+    bytes: int
+    width: int
+    height: int
+    sha256: str
+
+    @classmethod
+    def of_bytes(cls, name: str, data, width: int, height: int, size: int | None = None) -> "Fingerprint":
+        """Of ``data`` (bytes or a contiguous array), ``size`` bytes on disk (default: ``len(data)``)."""
+        from .errors import shown
+
+        digest = hashlib.sha256(memoryview(data).cast("B")).hexdigest()
+        nbytes = int(size) if size is not None else memoryview(data).nbytes
+        return cls(shown(name), nbytes, int(width), int(height), digest)
+
+    @classmethod
+    def of_file(cls, path: str | os.PathLike, data, width: int, height: int) -> "Fingerprint":
+        """Of an image file whose bytes are ``data`` (as read for decoding)."""
+        return cls.of_bytes(os.path.basename(os.fspath(path)), data, width, height)
 
 
 @dataclass(frozen=True, eq=False)
@@ -27,6 +61,9 @@ class Frame:
     camera: Intrinsics
     gt_pose: np.ndarray | None = None
     path: Path | None = None
+    fingerprint: Fingerprint | None = None
+    """What the frame was read from, measured as it was read (None: a rendered frame, or a source that does
+    not say)."""
 
     def __repr__(self) -> str:
         h, w = self.gray.shape[:2]

@@ -432,3 +432,30 @@ def test_ctrl_c_in_slamkit_run_saves_a_readable_resumable_run(tmp_path, uninterr
     assert finished.done and finished.finished
     np.testing.assert_array_equal(finished.trajectory().poses, full.poses)
     assert ate(open_source(SPEC).ground_truth(), traj).rmse < ATE_BOUND
+
+
+PAN = "synthetic:fast-yaw?frames=16&yaw_rate=15&turn=150&hold=0&noise=1&seed=0&scale=0.5"
+"""Issue 50 item 8: a fast pan right after initialization (15 degrees per frame, 320x240): from frame 12 on each
+frame is posed by its rotation to the frame before it (the last keyframe is too far behind)."""
+
+
+def test_a_run_resumed_inside_a_rotation_phase_equals_the_uninterrupted_run(tmp_path):
+    """Stopped in the middle of a pan whose frames are chained by rotation to the previous frame
+    (``RotationPhase.previous``, DT-SLAM's 2-D-only keyframe), saved, resumed in a fresh Slam and run to the end:
+    the same trajectory bit for bit as the run that went on without stopping (the resumed run lost the previous
+    frame before: its next frame was lost)."""
+    cut = 13
+    full = Slam(PAN, SlamConfig().with_overrides(seed=0))
+    full.run(max_steps=cut)
+    assert full.records[cut - 1].motion_model == "rotation" and full.records[cut - 1].status == "tracked"
+    assert full.rotation_phase.previous.index == cut - 1  # inside a rotation phase, chained to the frame before
+    save_session(full, tmp_path / "pan")
+    resumed = Slam.resume(tmp_path / "pan")
+    assert_same_state(full, resumed)
+    _same_frame_features([full.rotation_phase.previous], [resumed.rotation_phase.previous])
+    ahead, rest = full.run(), resumed.run()  # the uninterrupted run goes on; the resumed one from the session
+    assert ahead[0].message.startswith(f"rotation only against frame {cut - 1} ")  # needs the frame before the stop
+    assert [r.message for r in rest] == [r.message for r in ahead]
+    a, b = full.trajectory(), resumed.trajectory()
+    assert len(full) == 16 and len(a) == len(b) >= 12
+    assert np.array_equal(a.timestamps, b.timestamps) and np.array_equal(a.poses, b.poses)  # bit-identical

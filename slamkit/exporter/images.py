@@ -63,24 +63,39 @@ def _count_changed(run: SavedRun, source: FrameSource, detail: str) -> SlamkitEr
                         "(source=)")
 
 
+MAX_NAMED = 5
+"""Changed frames named one by one in the export's refusal (the rest are counted)."""
+
+
 def check_unchanged(run: SavedRun, source: FrameSource, frames: list[PosedFrame]) -> None:
-    """SlamkitError naming the first of ``frames`` whose file is not the one the run read (missing, another
-    size, other bytes: :func:`slamkit.io.fingerprint.changed`): the source changed after the run, and its
-    poses would go with other images. Frames of a run saved before fingerprints were recorded pass."""
+    """SlamkitError, one line naming the frames of ``frames`` whose file is not the one the run read (missing,
+    another size, other bytes: :func:`slamkit.io.fingerprint.changed`, against what the run measured when it
+    read each frame): the source changed during or after the run, and its poses would go with other images.
+    Every frame is checked, so two swapped files are both named. Frames of a run saved before fingerprints were
+    recorded pass."""
     checked: set = set()
+    found: list[tuple[PosedFrame, str]] = []
     for f in frames:
         i = source_position(run, source, f)
-        key = (str(frame_file(source, i)), f.fingerprint.get("sha256"))
-        if key in checked:  # a video: one file for every frame
+        key = (str(frame_file(source, i)), f.fingerprint.get("sha256"), i if f.fingerprint.get("bytes") else None)
+        if key in checked:  # a video of an older run: one file hash for every frame
             continue
         checked.add(key)
         why = changed(f.fingerprint, source, i)
         if why and run.source_frames is not None and run.source_frames != len(source):
             raise _count_changed(run, source, f"frame {f.index}: {why}")
         if why:
-            raise SlamkitError(f"{run.path}: frame {f.index} (dataset frame {f.frame_id}) is not the image the run "
-                               f"posed: {why}; the source changed after the run, so nothing was exported — restore "
-                               "its images, or run again on the source as it is now")
+            found.append((f, why))
+    if found:
+        (f, why), rest = found[0], found[1:]
+        also = ""
+        if rest:
+            named = ", ".join(f"{g.index} ({g.fingerprint.get('file') or '?'})" for g, _ in rest[:MAX_NAMED])
+            more = f" and {len(rest) - MAX_NAMED} more" if len(rest) > MAX_NAMED else ""
+            also = f"; so are frame{'s' if len(rest) > 1 else ''} {named}{more}"
+        raise SlamkitError(f"{run.path}: frame {f.index} (dataset frame {f.frame_id}) is not the image the run "
+                           f"posed: {why}{also}; the source changed after the run read it, so nothing was exported "
+                           "— restore its images, or run again on the source as it is now")
 
 
 def file_name(run: SavedRun, source: FrameSource, frame: PosedFrame, camera: ExportCamera) -> str:

@@ -1,19 +1,20 @@
-"""Fingerprints of the files a run's frames were read from: recorded when the run is saved, checked by export.
+"""Fingerprints of what a run's frames were read from: measured when each frame is read, checked by export
+and resume.
 
-A run folder holds no image: ``slamkit export`` reads the frames again from the source, so a source folder
-changed after the run (an image replaced, renamed into another's place, re-encoded at another size) would
-pair the run's poses with other pictures. Each row of the run's ``frames.csv`` therefore records the frame's
-file (``file``: its name), its image size (``width``, ``height`` in pixels, from the file's header) and the
-SHA-256 of the file's bytes (``sha256``). For a video, the file is the video itself (size of the decoded
-frames, one SHA-256 for the file). A synthetic source (rendered) has no file: the columns stay empty.
-
-Hashes are memoised per (path, size, modification time, inode), so saving a run again (an interrupted run,
-a resume) does not read every file again.
+A run folder holds no image: ``slamkit export`` reads the frames again from the source, and ``--resume``
+continues on it, so a source changed during or after the run (an image replaced, renamed into another's place,
+re-encoded at another size, another folder of the same names) would pair the run's poses with other pictures.
+The source measures each frame as it reads it (:class:`~slamkit.types.Fingerprint`, issue 50: the bytes are in
+memory then, hashing them costs a fraction of a millisecond); the pipeline keeps it in the frame's
+:class:`~slamkit.state.FrameRecord`, the session saves it, and each row of ``frames.csv`` holds it: ``file``
+(the name), ``bytes`` (its size), ``width``, ``height`` (pixels of the decoded image) and ``sha256`` (of the
+file's bytes). For a video, ``file`` and ``bytes`` are the video file's and ``sha256`` is that of the decoded
+frame's pixels, so each frame is proven on its own. A rendered source has no file: the columns stay empty.
+Nothing is hashed when the run is saved: a file changed since it was read is not recorded in its new state.
 """
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import os
 import struct
@@ -22,21 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import shown
-from .run_dir import file_sha256
+from ..types import Fingerprint
 
-__all__ = ["FINGERPRINT_COLUMNS", "changed", "frame_file", "frame_fingerprint", "image_size_of"]
+__all__ = ["FINGERPRINT_COLUMNS", "changed", "csv_fields", "frame_file", "image_size_of", "measure"]
 
-FINGERPRINT_COLUMNS = ("file", "width", "height", "sha256")
-
-
-@functools.lru_cache(maxsize=1 << 16)
-def _sha256(path: str, size: int, mtime_ns: int, ino: int) -> str:
-    return file_sha256(Path(path))
-
-
-def _file_sha256(path: Path) -> str:
-    st = os.stat(path)
-    return _sha256(str(path), st.st_size, st.st_mtime_ns, st.st_ino)
+FINGERPRINT_COLUMNS = ("file", "bytes", "width", "height", "sha256")
 
 
 def frame_file(source, i: int) -> Path | None:
@@ -92,58 +83,76 @@ def image_size_of(data: bytes) -> tuple[int, int]:
     return int(image.shape[1]), int(image.shape[0])
 
 
-def _measure(source, path: Path, memo: bool) -> tuple[int, int, str]:
-    """(width, height, SHA-256) of frame file ``path``: a video's decoded frame size and whole-file hash
-    (streamed), an image file's header size and hash (read once)."""
-    if getattr(source, "paths", None) is None:  # a video: the decoded frames' size
-        cam = source.camera
-        return int(cam.width), int(cam.height), _file_sha256(path) if memo else file_sha256(path)
-    if memo:
-        st = os.stat(path)
-        return _image_measure(str(path), st.st_size, st.st_mtime_ns, st.st_ino)
-    return _image_measure.__wrapped__(str(path), 0, 0, 0)
+def measure(source, i: int) -> Fingerprint | None:
+    """Frame ``i`` of ``source`` as it is now, measured as the run measured it when it read it: an image file's
+    bytes read and hashed (its size from the header: nothing decoded); any other frame (a video's) read from the
+    source and its own fingerprint taken. None when the source says nothing of its frames (rendered). Raises
+    OSError / ValueError / :class:`~slamkit.errors.ImageReadError` when the frame cannot be read now."""
+    paths = getattr(source, "paths", None)
+    if paths is not None:
+        path = Path(paths[i])
+        data = path.read_bytes()
+        w, h = image_size_of(data)
+        return Fingerprint(shown(path.name), len(data), w, h, hashlib.sha256(data).hexdigest())
+    return source[i].fingerprint
 
 
-@functools.lru_cache(maxsize=1 << 16)
-def _image_measure(path: str, size: int, mtime_ns: int, ino: int) -> tuple[int, int, str]:
-    data = Path(path).read_bytes()
-    w, h = image_size_of(data)
-    return w, h, hashlib.sha256(data).hexdigest()
+def csv_fields(record, source=None, i: int | None = None) -> dict[str, str]:
+    """``frames.csv``'s fingerprint columns of a :class:`~slamkit.state.FrameRecord` as text: what was measured
+    when the frame was read; for a frame without one (unreadable, or a session of an older slamkit) only the
+    name of its file in ``source`` (frame ``i``), never a hash of the file as it is at saving time."""
+    fp = getattr(record, "fingerprint", None)
+    if fp is not None:
+        return {"file": fp.file, "bytes": str(fp.bytes), "width": str(fp.width), "height": str(fp.height),
+                "sha256": fp.sha256}
+    out = dict.fromkeys(FINGERPRINT_COLUMNS, "")
+    path = frame_file(source, i) if source is not None and i is not None else None
+    if path is not None:
+        out["file"] = shown(path.name)
+    return out
 
 
-def frame_fingerprint(source, i: int) -> dict[str, str]:
-    """``{"file", "width", "height", "sha256"}`` of frame ``i`` of ``source`` as text (empty values for a
-    rendered source, or a file that cannot be read now)."""
-    empty = dict.fromkeys(FINGERPRINT_COLUMNS, "")
-    path = frame_file(source, i)
-    if path is None:
-        return empty
-    try:
-        w, h, sha = _measure(source, path, memo=True)
-        return {"file": shown(path.name), "width": str(w), "height": str(h), "sha256": sha}
-    except Exception:  # noqa: BLE001 - an unreadable file (the run skipped it): nothing to record
-        return {**empty, "file": shown(path.name)}
-
-
-def changed(recorded: dict, source, i: int) -> str | None:
-    """Why frame ``i`` of ``source`` is not the frame whose fingerprint ``recorded`` (a ``frames.csv`` row)
-    holds, or None when it is the same (or nothing was recorded: a run saved before fingerprints)."""
+def changed(recorded: dict | Fingerprint, source, i: int, now: Fingerprint | None = None) -> str | None:
+    """Why frame ``i`` of ``source`` is not the frame whose fingerprint ``recorded`` (a ``frames.csv`` row, or a
+    :class:`~slamkit.types.Fingerprint`) holds, or None when it is the same (or nothing was recorded: a run saved
+    before fingerprints). ``now``: the frame's fingerprint already measured (:func:`measure`), else measured here,
+    from the file (never from a cache: this is the check)."""
+    if isinstance(recorded, Fingerprint):
+        recorded = {"file": recorded.file, "bytes": str(recorded.bytes), "width": str(recorded.width),
+                    "height": str(recorded.height), "sha256": recorded.sha256}
     sha = (recorded.get("sha256") or "").strip()
     if not sha:
         return None
     path = frame_file(source, i)
-    if path is None:
-        return "the source has no file for it now"
-    if not path.is_file():
+    video = getattr(source, "paths", None) is None
+    if path is not None and not path.is_file():
         return f"{path} is missing"
-    if recorded.get("file") and shown(path.name) != recorded["file"]:  # names as text, odd bytes as \xNN
+    if path is not None and recorded.get("file") and shown(path.name) != recorded["file"]:  # odd bytes as \xNN
         return f"it is read from {path} now, the run read {recorded['file']}"
+    size = str(recorded.get("bytes") or "").strip()
+    if video and not size and now is None and path is not None:  # before issue 50: the video file's SHA-256
+        from .run_dir import file_sha256
+
+        try:
+            same = file_sha256(path) == sha
+        except OSError as e:
+            return f"{path} cannot be read now ({e.strerror or e})"
+        return None if same else f"{path} has other content than the run read (SHA-256 differs)"
     try:
-        w, h, now = _measure(source, path, memo=False)  # read again, never from the memo: this is the check
-    except Exception as e:  # noqa: BLE001
-        return f"{path} cannot be read now ({e})"
-    if (str(w), str(h)) != (str(recorded.get("width")), str(recorded.get("height"))):
-        return f"{path} is {w}x{h} pixels, the run saw {recorded.get('width')}x{recorded.get('height')}"
-    if now != sha:
-        return f"{path} has other content than the run read (SHA-256 differs)"
+        now = now if now is not None else measure(source, i)
+    except Exception as e:  # noqa: BLE001 - ImageReadError, OSError: named
+        return f"{path if path is not None else 'it'} cannot be read now ({e})"
+    if now is None:
+        return "the source has no file for it now"
+    if path is None and recorded.get("file") and now.file != recorded["file"]:
+        return f"it is read from {now.file} now, the run read {recorded['file']}"
+    path = path if path is not None else now.file
+    where = f"frame {int(source.frame_ids[i])} of {path}" if video else str(path)
+    if (str(now.width), str(now.height)) != (str(recorded.get("width")), str(recorded.get("height"))):
+        return (f"{where} is {now.width}x{now.height} pixels, the run saw "
+                f"{recorded.get('width')}x{recorded.get('height')}")
+    other_size = bool(size) and size != "-1" and now.bytes >= 0 and str(now.bytes) != size
+    if now.sha256 != sha or other_size:
+        sizes = f"; {now.bytes} bytes, the run read {size}" if other_size else ""
+        return f"{where} has other content than the run read (SHA-256 differs{sizes})"
     return None

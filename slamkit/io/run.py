@@ -7,7 +7,8 @@ several):
 - ``keyframes_tum.txt`` keyframes only; ``trajectory_kitti.txt`` KITTI format (12 values per line)
 - ``sparse/`` COLMAP binary model (``pycolmap.Reconstruction(DIR / "sparse")``); ``points.ply``
 - ``summary.json`` timings, counts, Table-2 columns and the config; ``frames.csv`` one row per frame, with
-  the file it was read from, its size and SHA-256 (:mod:`slamkit.io.fingerprint`; checked by ``export``)
+  the file it was read from, its size in bytes and pixels and SHA-256, measured when the frame was read
+  (:mod:`slamkit.io.fingerprint`; checked by ``export`` and ``--resume``)
 - ``camera.txt`` the intrinsics used (given, found or estimated; how, in its comment): ``--camera DIR`` reuses them
 - ``groundtruth_tum.txt`` the source's ground truth of the used frames, when it has one
 - ``session/`` everything ``Slam.resume(DIR)`` needs to continue the run (:mod:`slamkit.session`: COLMAP
@@ -34,7 +35,7 @@ from ..session import SESSION_DIR, write_session
 from ..sources.calibration import CAMERA_TXT, write_camera_txt
 from ..types import Trajectory
 from .atomic import atomic_dir
-from .fingerprint import FINGERPRINT_COLUMNS, frame_fingerprint
+from .fingerprint import FINGERPRINT_COLUMNS, csv_fields
 from .run_dir import RUN_MARKER, SESSION_MARKER, check_out_dir, out_dir_lock, write_manifest
 from .trajectory import write_kitti, write_tum
 
@@ -110,11 +111,9 @@ def _frames_csv(slam: "Slam") -> str:
     w.writerow(["index", "frame_id", "timestamp", "status", "segment", "keyframe_image_id", *FINGERPRINT_COLUMNS,
                 "error"])
     indices = getattr(slam, "indices", None)
-    for r in slam.records:
-        if indices is not None and 0 <= r.index < len(indices):
-            print_ = frame_fingerprint(slam.source, int(indices[r.index]))
-        else:
-            print_ = dict.fromkeys(FINGERPRINT_COLUMNS, "")
+    for r in slam.records:  # fingerprints as measured when each frame was read: no file is hashed now
+        i = int(indices[r.index]) if indices is not None and 0 <= r.index < len(indices) else None
+        print_ = csv_fields(r, slam.source, i)
         w.writerow([r.index, r.frame_id, f"{r.timestamp:.6f}", r.status, r.segment, r.keyframe_image_id,
                     *(print_[c] for c in FINGERPRINT_COLUMNS), errors.get(r.index, "")])
     return buf.getvalue()

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..errors import C_INT_MAX, ConfigError, ImageReadError, SourceError, shown
-from ..types import Frame, Trajectory
+from ..types import Fingerprint, Frame, Trajectory
 
 CAMERA_IN_SPEC = "camera= cannot be given for synthetic sources (their camera is part of the spec)"
 """Why given intrinsics are refused for a source whose camera is part of its spec (``FrameSource.camera_in_spec``)."""
@@ -68,12 +68,18 @@ class FrameSource:
         """Decode delivered frame ``i``: returns (image uint8 HxW or HxWx3 BGR, path or None)."""
         raise NotImplementedError
 
+    def _read_fingerprinted(self, i: int) -> tuple[np.ndarray, Path | None, Fingerprint | None]:
+        """:meth:`_read` and the frame's :class:`~slamkit.types.Fingerprint`, measured on what was read (None:
+        this source does not say; sources of files and videos override it)."""
+        image, path = self._read(i)
+        return image, path, None
+
     def __getitem__(self, i: int) -> Frame:
         n = len(self)
         if not -n <= i < n:
             raise IndexError(f"frame {i} out of range for {self.name} with {n} frames")
         i = i % n
-        image, path = self._read(i)
+        image, path, fingerprint = self._read_fingerprinted(i)
         frame_id = int(self.frame_ids[i])
         check_frame_size(image.shape[1], image.shape[0], path or f"{self.name}, frame {frame_id}")
         gray, color = to_gray_and_rgb(image)
@@ -82,7 +88,7 @@ class FrameSource:
         if self.gt_poses is not None and np.isfinite(self.gt_poses[i]).all():
             gt = self.gt_poses[i].copy()
         return Frame(index=i, frame_id=frame_id, timestamp=float(self.timestamps[i]),
-                     gray=gray, color=color, camera=self.camera, gt_pose=gt, path=path)
+                     gray=gray, color=color, camera=self.camera, gt_pose=gt, path=path, fingerprint=fingerprint)
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(len(self)):
@@ -168,6 +174,12 @@ def read_image(path: Path) -> np.ndarray:
     The bytes are read by Python and decoded from memory (``cv2.imdecode``): a file name reaches the OS only,
     never OpenCV, whatever bytes it holds (OpenCV's own reader crashes on names that are not UTF-8).
     """
+    return read_image_file(path)[0]
+
+
+def read_image_file(path: Path) -> tuple[np.ndarray, Fingerprint]:
+    """:func:`read_image` and the file's :class:`~slamkit.types.Fingerprint` (name, size in bytes, decoded
+    width and height, SHA-256 of the bytes just decoded: what the frame was, at no second read)."""
     path = Path(path)
     if not path.is_file():
         raise ImageReadError(path, "is not a regular file" if os.path.exists(path) else "file does not exist")
@@ -188,7 +200,7 @@ def read_image(path: Path) -> np.ndarray:
         raise ImageReadError(path, f"could not be decoded ({e})") from None
     if image is None or image.size == 0:
         raise ImageReadError(path)
-    return image
+    return image, Fingerprint.of_file(path, data, image.shape[1], image.shape[0])
 
 
 @contextlib.contextmanager
@@ -251,5 +263,9 @@ class ImageListSource(FrameSource):
 
     def _read(self, i: int) -> tuple[np.ndarray, Path | None]:
         return read_image(self.paths[i]), self.paths[i]
+
+    def _read_fingerprinted(self, i: int) -> tuple[np.ndarray, Path | None, Fingerprint | None]:
+        image, fingerprint = read_image_file(self.paths[i])
+        return image, self.paths[i], fingerprint
 
     __repr__ = FrameSource.__repr__
