@@ -332,7 +332,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("source")
     g.add_argument("out", help="the TUM file to write (an existing file only with --overwrite; never inside the "
                                "source or a run folder)")
-    g.add_argument("--overwrite", action="store_true", help="replace OUT when it exists")
+    g.add_argument("--overwrite", action="store_true",
+                   help="replace OUT when it exists and is a trajectory slamkit wrote (never another file)")
     g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
                    help="intrinsics, applied before the source is opened (e.g. a TUM layout without a freiburg name)")
     g.set_defaults(func=cmd_gt)
@@ -349,7 +350,8 @@ def _add_run_parser(sub) -> None:
                    help="run folder: a new or empty folder, or an earlier slamkit run (replaced atomically; keeps a "
                         "session/ to resume); never inside the source")
     r.add_argument("--overwrite", action="store_true",
-                   help="replace --out even when it holds other files than a slamkit run (they are deleted)")
+                   help="accepted for older scripts: an earlier slamkit run in --out is replaced without it, and a "
+                        "folder holding anything else never is (nor the home or current folder)")
     r.add_argument("--resume", action="store_true",
                    help="continue the run saved in --out (its session/) if there is one: same source, the saved "
                         "config changed only by the options given; else start a new run")

@@ -89,7 +89,7 @@ Every other scalar field is saved under its own name, so a new counter in the st
 def save_session(slam: "Slam", out_dir: str | Path) -> Path:
     """Write ``slam``'s session to ``out_dir`` (replaced atomically); returns the folder."""
     out_dir = check_output(out_dir, "session", [getattr(slam, "source_spec", None), slam.source], flag="out_dir")
-    with out_dir_lock(out_dir, flag="out_dir", what="session folder"), atomic_dir(out_dir) as tmp:
+    with out_dir_lock(out_dir, flag="out_dir", what="session folder"), atomic_dir(out_dir, kind="session") as tmp:
         write_session(slam, tmp)
         write_manifest(tmp, SESSION_MARKER)  # sizes and checksums, checked before it is read
     return out_dir
@@ -334,13 +334,14 @@ def _config_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return out
 
 
-def source_identity(source) -> dict:
-    """Name, frame count, a digest of frame ids and timestamps, and the intrinsics of a frame source."""
+def source_identity(source, frames: int | None = None) -> dict:
+    """Name, frame count, a digest of frame ids and timestamps, and the intrinsics of a frame source (the
+    digest of its first ``frames`` frames when given)."""
     h = hashlib.sha256()
     for name, dtype in (("frame_ids", np.int64), ("timestamps", np.float64)):
         values = getattr(source, name, None)
         if values is not None:
-            h.update(np.ascontiguousarray(np.asarray(values, dtype)).tobytes())
+            h.update(np.ascontiguousarray(np.asarray(values, dtype)[:frames]).tobytes())
     cam = getattr(source, "camera", None)
     return {"name": str(getattr(source, "name", type(source).__name__)), "frames": int(len(source)),
             "digest": h.hexdigest()[:16], "camera": cam.to_dict() if cam is not None else None}
@@ -351,7 +352,11 @@ def _check_source(saved: dict, source, folder: Path) -> None:
     problems = []
     if now["name"] != saved["name"]:
         problems.append(f"name {saved['name']!r} vs {now['name']!r}")
-    if now["frames"] != saved["frames"]:
+    if saved.get("spec") and saved["frames"] < now["frames"]:  # opened with max_frames (open_source(spec, max_frames=N)
+        # in Python), resumed on the whole source: its first frames must be the saved ones
+        if source_identity(source, saved["frames"])["digest"] != saved["digest"]:
+            problems.append(f"different frame ids or timestamps in the first {saved['frames']} frames")
+    elif now["frames"] != saved["frames"]:
         problems.append(f"{saved['frames']} frames vs {now['frames']}")
     elif now["digest"] != saved["digest"]:
         problems.append("different frame ids or timestamps")

@@ -106,6 +106,35 @@ def save_id(folder: str | os.PathLike) -> str | None:
 
 
 # ----------------------------------------------------------------------------------------------- what may be replaced
+REPORT_FILES = ("report.md", "report.html", "evaluation.json", "map.html")
+"""Files ``slamkit eval`` (and the app's Export HTML: ``map.html``) writes into a run or report folder."""
+PLOT_FILES = frozenset({"trajectory.png", "error_over_time.png", "timings.png"})
+"""What ``slamkit eval`` writes into ``plots/``."""
+REPORT_MARKS = {"report.md": "<!-- slamkit eval report -->", "report.html": '<meta name="generator" content="slamkit eval">',
+                "map.html": "<!-- slamkit eval map -->"}
+"""The mark each report file's text carries (:mod:`slamkit.eval.report` writes it)."""
+REPORT_OWN_CONTENT = {  # what makes a file slamkit's: its mark, or the text of a report an older slamkit wrote
+    "report.md": (REPORT_MARKS["report.md"], "(Umeyama on the matched camera centres), timestamps matched within"),
+    "report.html": (REPORT_MARKS["report.html"], "<title>slamkit evaluation</title>"),
+    "evaluation.json": ('"generator": "slamkit eval"', '"alignment": "sim3"'),
+    "map.html": (REPORT_MARKS["map.html"], "slamkit map"),
+}
+LISTING_HEADER = "# files written (paths relative to this folder, one a line):"
+"""Line of an export's or report's marker file after which the files that save wrote are listed."""
+
+
+def is_own_report_file(path: Path) -> bool:
+    """True when ``path`` (a regular file named like one of :data:`REPORT_FILES`) holds slamkit's mark."""
+    try:
+        if path.is_symlink() or not path.is_file():
+            return False
+        with open(path, "rb") as f:
+            text = f.read(1 << 20).decode("utf-8", "replace")
+    except OSError:
+        return False
+    return any(mark in text for mark in REPORT_OWN_CONTENT.get(path.name, ()))
+
+
 def _is_session_dir(path: Path) -> bool:
     try:
         meta = json.loads((path / "session.json").read_text())
@@ -114,18 +143,126 @@ def _is_session_dir(path: Path) -> bool:
     return isinstance(meta, dict) and meta.get("format") == "slamkit-session"
 
 
-def foreign_entries(path: Path) -> list[str]:
-    """Names in folder ``path`` that are not slamkit's (empty: the folder is empty or slamkit's own output:
-    a run folder, marked or saved before markers existed, or a session folder)."""
+def write_listing(folder: str | os.PathLike, marker: str, title: str) -> Path:
+    """Write ``folder/marker``: ``title`` and the relative path of every file below ``folder`` (called last,
+    inside the temporary folder of an atomic save), so a later save replaces only files this one wrote."""
+    folder = Path(folder)
+    files = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                   if p.is_file() and p.relative_to(folder).as_posix() not in (marker, TEMP_MARKER))
+    path = folder / marker
+    path.write_text(f"{title}\n{LISTING_HEADER}\n" + "".join(f"{f}\n" for f in files), errors="surrogateescape")
+    return path
+
+
+def _listing(folder: Path, marker: str) -> set[str] | None:
+    """The files ``folder``'s marker lists (a run's or session's manifest, an export's or report's listing);
+    None when it lists none (saved before listings existed) or cannot be read."""
+    if marker in MANIFEST_FORMATS:
+        try:
+            meta = read_manifest(folder, marker)
+        except (OSError, ValueError, UnicodeDecodeError):
+            return None
+        return None if meta is None else set(meta["files"])
+    try:
+        lines = (folder / marker).read_text(errors="surrogateescape").splitlines()
+    except OSError:
+        return None
+    return set(lines[lines.index(LISTING_HEADER) + 1:]) if LISTING_HEADER in lines else None
+
+
+def _report_entry(rel: str, path: Path) -> bool:
+    """``rel`` is a file or folder ``slamkit eval`` wrote: a report file with its mark, ``plots/`` or a plot."""
+    if rel in REPORT_FILES:
+        return is_own_report_file(path)
+    if rel == "plots":
+        return path.is_dir() and not path.is_symlink()
+    return rel.startswith("plots/") and rel[6:] in PLOT_FILES and path.is_file() and not path.is_symlink()
+
+
+def _not_listed(folder: Path, listed: set[str], allowed) -> list[str]:
+    """Entries below ``folder`` that slamkit did not write: files (links, sockets, ...) neither in ``listed``
+    nor ``allowed(rel, path)``, and folders holding no listed file (one entry, ``NAME/``)."""
+    holders = {f.rsplit("/", i)[0] for f in listed for i in range(1, f.count("/") + 1)}
+    foreign: list[str] = []
+
+    def walk(sub: Path, prefix: str) -> None:
+        for name in sorted(os.listdir(sub)):
+            rel, path = prefix + name, sub / name
+            if path.is_dir() and not path.is_symlink():
+                if rel in holders or allowed(rel, path):
+                    walk(path, rel + "/")
+                else:
+                    foreign.append(rel + "/")
+            elif rel not in listed and not allowed(rel, path):
+                foreign.append(rel)
+
+    walk(folder, "")
+    return foreign
+
+
+_OWN_TOP = {
+    "export": frozenset({".slamkit-export", "images", "sparse", "transforms.json", "sparse_pc.ply"}),
+    "report": frozenset({".slamkit-report", "plots", *REPORT_FILES}),
+}
+"""What an export or report folder saved before listings existed holds (top level)."""
+
+
+def foreign_entries(path: str | os.PathLike, kind: str = "run") -> list[str]:
+    """Entries of folder ``path`` that slamkit did not write as a ``kind`` output (:data:`OUTPUT_KINDS`), as
+    paths relative to it (``notes.txt``, ``sparse/mine.txt``, ``old/``); empty when the folder is empty or
+    holds nothing but a slamkit ``kind`` output. A run or session is recognised by its marker (files in its
+    manifest are its own) or, saved before markers existed, by its ``session.json``; an export or a report by
+    its marker (files in its listing). A run folder (or a session folder given to a run) may also hold what
+    ``slamkit eval`` and the app wrote later (:data:`REPORT_FILES` with slamkit's mark, ``plots/``). Every
+    other entry is the user's: a folder holding one is never replaced (:func:`replace_refusal`)."""
+    path = Path(path)
     names = sorted(os.listdir(path))
     if not names:
         return []
-    if (path / RUN_MARKER).is_file() or ((path / "session" / "session.json").is_file()
-                                         and _is_session_dir(path / "session")):
-        return [n for n in names if n not in RUN_ENTRIES and not n.startswith(f"{RUN_MARKER}.")]
-    if (path / SESSION_MARKER).is_file() or _is_session_dir(path):
-        return [n for n in names if not SESSION_ENTRY.match(n)]
-    return names
+    return _as_entries(path, _foreign_names(path, names, kind))
+
+
+def _as_entries(path: Path, names: list[str]) -> list[str]:
+    """``names`` with ``/`` after each (real) folder's name: ``thesis/``."""
+    return [n + "/" if "/" not in n and (path / n).is_dir() and not (path / n).is_symlink() else n for n in names]
+
+
+def _foreign_names(path: Path, names: list[str], kind: str) -> list[str]:
+    if kind in ("run", "session"):
+        marker = next((m for m in ((RUN_MARKER, SESSION_MARKER) if kind == "run" else (SESSION_MARKER,))
+                       if (path / m).is_file()), None)
+        if marker is None and kind == "run" and (path / "session" / "session.json").is_file() \
+                and _is_session_dir(path / "session"):
+            marker = RUN_MARKER  # a run saved before markers existed
+        elif marker is None and _is_session_dir(path):
+            marker = SESSION_MARKER  # a session saved before markers existed
+        if marker is None:
+            return names
+        extra = _report_entry if kind == "run" else (lambda rel, p: False)
+
+        def allowed(rel: str, p: Path) -> bool:
+            return rel == marker or rel.startswith(f"{RUN_MARKER}.") or extra(rel, p)
+
+        listed = _listing(path, marker) if (path / marker).is_file() else None
+        if listed is not None:
+            return _not_listed(path, listed, allowed)
+        if marker == SESSION_MARKER:
+            return [n for n in names if not (SESSION_ENTRY.match(n) or allowed(n, path / n))]
+        return [n for n in names if not (allowed(n, path / n) or n in RUN_ENTRIES - {"plots", *REPORT_FILES})]
+    if kind in ("export", "report"):
+        marker = EXPORT_MARKER if kind == "export" else REPORT_MARKER
+        if not (path / marker).is_file():
+            return names
+        listed = _listing(path, marker)
+        allowed = (lambda rel, p: rel == marker or (kind == "report" and _report_entry(rel, p)))
+        if listed is not None:
+            return _not_listed(path, listed, allowed)
+        return [n for n in names if n not in _OWN_TOP[kind]]
+    if kind == "sweep":  # a sweep writes its own files among others (never replaces or removes one)
+        if (path / SWEEP_FILE).is_file():
+            return []
+        return [n for n in names if not SWEEP_ENTRIES.match(n)]
+    raise ValueError(f"kind must be one of {', '.join(OUTPUT_KINDS)} (got {kind!r})")
 
 
 def is_run_folder(path: str | os.PathLike) -> bool:
@@ -139,12 +276,93 @@ def is_run_folder(path: str | os.PathLike) -> bool:
         return False
 
 
-def is_replaceable(path: str | os.PathLike) -> bool:
-    """True when ``path`` is missing, an empty folder, or a folder slamkit wrote (nothing else in it)."""
+def _home_folders() -> list[Path]:
+    homes = []
+    with contextlib.suppress(RuntimeError, KeyError, OSError):
+        homes.append(Path.home())
+    if os.environ.get("HOME"):
+        homes.append(Path(os.environ["HOME"]))
+    return [_resolved(h) for h in homes]
+
+
+def protected_reason(path: str | os.PathLike) -> str | None:
+    """Why folder ``path`` is never an output slamkit replaces or writes into, even when it holds a slamkit
+    output: a file system root or mount point, the home folder or one holding it, the current folder or one
+    holding it. None otherwise. (A source folder is refused by :func:`check_output`, which knows the
+    sources.)"""
+    real = _resolved(Path(path))
+    if real.parent == real:
+        return "is a file system root"
+    for home in _home_folders():
+        if real == home:
+            return "is the home folder"
+        if real in home.parents:
+            return f"holds the home folder {home}"
+    cwd = _resolved(Path.cwd())
+    if real == cwd:
+        return "is the current folder"
+    if real in cwd.parents:
+        return "holds the current folder"
+    with contextlib.suppress(OSError):
+        if os.path.ismount(real):
+            return "is the root of a mounted file system"
+    return None
+
+
+def found_text(entries: list[str]) -> str:
+    """A few of ``entries`` and their count, for a message: ``notes.txt`` or ``5 entries: a, b, c and 2 more``."""
+    if len(entries) == 1:
+        return shown(entries[0])
+    more = f" and {len(entries) - 3} more" if len(entries) > 3 else ""
+    return f"{len(entries)} entries: {', '.join(shown(e) for e in entries[:3])}{more}"
+
+
+def replace_refusal(path: str | os.PathLike, kind: str = "run") -> str | None:
+    """Why folder ``path`` may not be replaced by (or, a sweep, written into as) a ``kind`` output — the one
+    rule every writer goes through, :func:`check_output` before any work and
+    :func:`slamkit.io.atomic.atomic_dir` again just before it moves the old folder aside: None when ``path``
+    is missing, an empty folder or a slamkit ``kind`` output holding nothing else (:func:`foreign_entries`);
+    else the reason, starting with what was found there. ``overwrite`` never widens it: a folder slamkit did
+    not write is never deleted."""
     path = Path(path)
-    if not path.exists():
-        return True
-    return path.is_dir() and not foreign_entries(path)
+    why = protected_reason(path) if (path.exists() or path.is_symlink()) else None
+    if why:
+        return f"{why}; slamkit never replaces or writes into it, even with --overwrite — give a new folder inside it"
+    try:
+        if not (path.exists() or path.is_symlink()):
+            return None
+        if not path.is_dir():
+            return "exists and is not a folder"
+        foreign = foreign_entries(path, kind)
+    except OSError as e:
+        return f"cannot be listed ({e.strerror or e})"
+    if not foreign:
+        return None
+    what = OUTPUT_KINDS[kind]
+    if _is_kind(path, kind):
+        return (f"is a {what} folder but also holds what slamkit did not write ({found_text(foreign)}); nothing was "
+                "written — slamkit never deletes a file it did not write, even with --overwrite: move them out, or "
+                "choose another folder")
+    return (f"folder is not empty and is not a {what} ({found_text(foreign)}); nothing was written — choose "
+            "another folder, or a new folder inside it; slamkit replaces only its own folders, even with --overwrite "
+            "(remove it yourself if you mean to)")
+
+
+def _is_kind(path: Path, kind: str) -> bool:
+    """``path`` carries the marker of a slamkit ``kind`` output (or, a run or session saved before markers
+    existed, its ``session.json``)."""
+    if kind == "run":
+        return is_run_folder(path) or _is_kind(path, "session")
+    if kind == "session":
+        return (path / SESSION_MARKER).is_file() or _is_session_dir(path)
+    marker = {"export": EXPORT_MARKER, "report": REPORT_MARKER, "sweep": SWEEP_FILE}.get(kind)
+    return marker is not None and (path / marker).is_file()
+
+
+def is_replaceable(path: str | os.PathLike, kind: str = "run") -> bool:
+    """True when ``path`` is missing, an empty folder, or a ``kind`` folder slamkit wrote (nothing else in it),
+    and not a protected folder (:func:`replace_refusal`)."""
+    return replace_refusal(path, kind) is None
 
 
 # ----------------------------------------------------------------------------------------------- --out checks
@@ -226,14 +444,15 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
     """The one check every command that writes goes through, before any work (OutputError naming ``flag``
     and the path otherwise). ``kind``: one of :data:`OUTPUT_KINDS`.
 
-    Always refused, even with ``overwrite``: an empty path; a path component longer than the file system
-    allows; a file system root, the current folder or one holding it (folders); a path equal to, inside or
-    holding a source's file or folder (symlinks resolved); a path inside a slamkit run, session or export
-    folder (their files are listed in a manifest: writing among them breaks the run) — except a run's own
-    ``session/`` being written as part of it; a folder where a file is expected and the reverse.
-    Refused without ``overwrite``: an existing file (kind ``file``); a non-empty folder that is not of
-    ``kind`` (a run folder for ``run``, an export for ``export``, a sweep for ``sweep``). The parent folder
-    is created and a test file written in it, so an unwritable place fails now.
+    Always refused, ``overwrite`` or not: an empty path; a path component longer than the file system
+    allows; a file system root; a folder :func:`protected_reason` names (the home folder, the current folder,
+    one holding either, a mount point); a path equal to, inside or holding a source's file or folder
+    (symlinks resolved); a path inside a slamkit run, session or export folder (their files are listed in a
+    manifest: writing among them breaks the run); a folder where a file is expected and the reverse; an
+    existing folder holding anything but a slamkit ``kind`` output (:func:`replace_refusal`: nothing slamkit
+    did not write is ever deleted). ``overwrite`` only lets ``gt`` (kind ``file``) replace an existing
+    trajectory file slamkit wrote (or an empty file); a slamkit folder of ``kind`` is replaced without it.
+    The parent folder is created and a test file written in it, so an unwritable place fails now.
     ``sources``: specs, paths or opened sources (:func:`source_paths`).
     """
     what = OUTPUT_KINDS[kind]
@@ -247,10 +466,11 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
     real = _resolved(out)
     if real.parent == real:
         raise OutputError(f"{flag} {out}: a file system root cannot be a {noun}")
-    cwd = _resolved(Path.cwd())
-    if kind != "file" and (real == cwd or real in cwd.parents):
-        raise OutputError(f"{flag} {out}: is the current folder{'' if real == cwd else ' or holds it'}; "
-                          f"give a new folder, e.g. runs/NAME")
+    why = protected_reason(out) if kind != "file" else None
+    if why:
+        example = "runs/NAME" if why.endswith("current folder") else shown(out / "runs" / "NAME")
+        raise OutputError(f"{flag} {out}: {why}; slamkit never replaces or writes into it, even with --overwrite — "
+                          f"give a new folder, e.g. {example}")
     for src in source_paths_all(sources):
         why = _overlap(out, src)
         if why:
@@ -275,24 +495,33 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
             if not overwrite:
                 raise OutputError(f"{flag} {out}: exists; nothing was written — choose another file name, or "
                                   "pass --overwrite to replace it")
+            if not _own_trajectory_file(out):
+                raise OutputError(f"{flag} {out}: exists and is not a trajectory file slamkit wrote (its first line "
+                                  "is not slamkit's TUM header), so it is kept, even with --overwrite; nothing was "
+                                  "written — choose another file name (or remove it yourself if you mean to)")
         elif not out.is_dir():
             raise OutputError(f"{flag} {out}: exists and is not a folder; give a folder for the {what}")
         else:
-            try:
-                foreign = _foreign(out, kind)
-            except OSError as e:
-                raise OutputError(f"{flag} {out}: cannot be listed ({e.strerror or e})") from e
-            if foreign and not overwrite:
-                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-                again = (" to replace it and everything in it" if kind != "sweep" else
-                         " to write the sweep's files among them")
-                raise OutputError(f"{flag} {out}: folder is not empty and is not a {what} ({shown}); nothing was "
-                                  f"written — choose another folder, or pass --overwrite (overwrite=True){again}")
+            why = replace_refusal(out, kind)
+            if why:
+                raise OutputError(f"{flag} {out}: {why}")
     above = next((p for p in out.parents if p.exists()), None)
     if above is not None and not above.is_dir():
         raise OutputError(f"{flag} {out}: cannot be created, {above} is a file")
     _check_writable(out.parent, f"{flag} {out}")
     return out
+
+
+def _own_trajectory_file(path: Path) -> bool:
+    """``path`` is empty or begins with the header slamkit's TUM writer puts first (``gt``'s output)."""
+    from .trajectory import TUM_HEADER  # here: trajectory imports atomic, which imports this module
+
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(TUM_HEADER) + 1)
+    except OSError:
+        return False
+    return head == b"" or head.rstrip(b"\r\n") == TUM_HEADER.encode()
 
 
 def check_out_dir(out: str | os.PathLike, sources: Iterable = (), overwrite: bool = False,
