@@ -352,8 +352,9 @@ def _check_source(saved: dict, source, folder: Path) -> None:
     problems = []
     if now["name"] != saved["name"]:
         problems.append(f"name {saved['name']!r} vs {now['name']!r}")
-    if saved.get("spec") and saved["frames"] < now["frames"]:  # opened with max_frames (open_source(spec, max_frames=N)
-        # in Python), resumed on the whole source: its first frames must be the saved ones
+    if saved.get("spec") and saved["spec"] == getattr(source, "spec", None) and saved["frames"] < now["frames"]:
+        # the same spec, opened with max_frames in Python (open_source(spec, max_frames=N)), resumed on the whole
+        # source: its first frames must be the saved ones
         if source_identity(source, saved["frames"])["digest"] != saved["digest"]:
             problems.append(f"different frame ids or timestamps in the first {saved['frames']} frames")
     elif now["frames"] != saved["frames"]:

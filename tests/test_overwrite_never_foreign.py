@@ -278,3 +278,25 @@ def test_gt_overwrite_replaces_only_a_trajectory_slamkit_wrote(tmp_path, capsys)
     assert main(["gt", src, str(out)]) == 0
     first = out.read_bytes()
     assert main(["gt", src, str(out), "--overwrite"]) == 0 and out.read_bytes() == first
+
+
+def test_the_app_s_save_keeps_its_map_html_and_refuses_a_user_s_file(slam, run):
+    """The app's Save (``keeping_unsaved_files`` around ``slam.save``, :meth:`SlamApp.save`) replaces the run
+    folder but keeps what the last save did not write there (Export HTML's map.html, eval's report); a file of
+    the user's makes it refuse, and nothing is lost."""
+    from slamkit.viz.kept_files import keeping_unsaved_files
+
+    evaluate_run(run, plots=False, map_view=False)
+    (run / "map.html").write_text("<html><title>slamkit map: default</title></html>")
+    later = {n: (run / n).read_bytes() for n in ("map.html", "report.md", "report.html", "evaluation.json")}
+    first = save_id(run)
+    with keeping_unsaved_files(run) as kept:
+        slam.save(run)
+    assert kept == sorted(later) and save_id(run) not in (None, first)
+    assert {n: (run / n).read_bytes() for n in later} == later
+    (run / "notes.txt").write_text("mine")
+    before = _digest(run)
+    with pytest.raises(OutputError, match=r"also holds what slamkit did not write \(notes.txt\)"):
+        with keeping_unsaved_files(run):
+            slam.save(run)
+    assert _digest(run) == before and not list(run.parent.glob(".run.*"))

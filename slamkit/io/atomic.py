@@ -155,6 +155,9 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False, kind: str = "ru
     except OSError as e:
         _remove_tree(tmp)
         raise OutputError(write_failure(path, e, 0, path.exists(), "folder")) from None
+    except BaseException:
+        _remove_tree(tmp)
+        raise
     existed = path.exists()
     try:
         yield tmp

@@ -150,7 +150,8 @@ def write_listing(folder: str | os.PathLike, marker: str, title: str) -> Path:
     files = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
                    if p.is_file() and p.relative_to(folder).as_posix() not in (marker, TEMP_MARKER))
     path = folder / marker
-    path.write_text(f"{title}\n{LISTING_HEADER}\n" + "".join(f"{f}\n" for f in files), errors="surrogateescape")
+    path.write_text(f"{title}\n{LISTING_HEADER}\n" + "".join(f"{f}\n" for f in files),
+                    encoding="utf-8", errors="surrogateescape")
     return path
 
 
@@ -164,7 +165,7 @@ def _listing(folder: Path, marker: str) -> set[str] | None:
             return None
         return None if meta is None else set(meta["files"])
     try:
-        lines = (folder / marker).read_text(errors="surrogateescape").splitlines()
+        lines = (folder / marker).read_text(encoding="utf-8", errors="surrogateescape").splitlines()
     except OSError:
         return None
     return set(lines[lines.index(LISTING_HEADER) + 1:]) if LISTING_HEADER in lines else None
@@ -325,9 +326,10 @@ def replace_refusal(path: str | os.PathLike, kind: str = "run") -> str | None:
     else the reason, starting with what was found there. ``overwrite`` never widens it: a folder slamkit did
     not write is never deleted."""
     path = Path(path)
+    even = _even_with_overwrite(kind)
     why = protected_reason(path) if (path.exists() or path.is_symlink()) else None
     if why:
-        return f"{why}; slamkit never replaces or writes into it, even with --overwrite — give a new folder inside it"
+        return f"{why}; slamkit never replaces or writes into it{even} — give a new folder inside it"
     try:
         if not (path.exists() or path.is_symlink()):
             return None
@@ -341,11 +343,17 @@ def replace_refusal(path: str | os.PathLike, kind: str = "run") -> str | None:
     what = OUTPUT_KINDS[kind]
     if _is_kind(path, kind):
         return (f"is a {what} folder but also holds what slamkit did not write ({found_text(foreign)}); nothing was "
-                "written — slamkit never deletes a file it did not write, even with --overwrite: move them out, or "
-                "choose another folder")
+                f"written — slamkit never deletes a file it did not write{even}: move them out, or choose another "
+                "folder")
     return (f"folder is not empty and is not a {what} ({found_text(foreign)}); nothing was written — choose "
-            "another folder, or a new folder inside it; slamkit replaces only its own folders, even with --overwrite "
-            "(remove it yourself if you mean to)")
+            f"another folder, or a new folder inside it; slamkit replaces only its own folders{even} (remove it "
+            "yourself if you mean to)")
+
+
+def _even_with_overwrite(kind: str) -> str:
+    """", even with --overwrite" for the outputs of the commands that have the flag (``run``: a run folder;
+    ``gt``: a file), else "": no message advises a flag its command does not have."""
+    return ", even with --overwrite" if kind in ("run", "file") else ""
 
 
 def _is_kind(path: Path, kind: str) -> bool:
@@ -469,8 +477,8 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
     why = protected_reason(out) if kind != "file" else None
     if why:
         example = "runs/NAME" if why.endswith("current folder") else shown(out / "runs" / "NAME")
-        raise OutputError(f"{flag} {out}: {why}; slamkit never replaces or writes into it, even with --overwrite — "
-                          f"give a new folder, e.g. {example}")
+        raise OutputError(f"{flag} {out}: {why}; slamkit never replaces or writes into it{_even_with_overwrite(kind)} "
+                          f"— give a new folder, e.g. {example}")
     for src in source_paths_all(sources):
         why = _overlap(out, src)
         if why:
@@ -749,7 +757,8 @@ _TEMP_TEXT = "slamkit temporary folder"
 
 def mark_temporary(folder: Path, of: Path) -> None:
     """Write :data:`TEMP_MARKER` into ``folder``, a temporary folder slamkit just made beside ``of``."""
-    (folder / TEMP_MARKER).write_text(f"{_TEMP_TEXT} of {shown(of.name)} (pid {os.getpid()}); removed when it is done\n")
+    (folder / TEMP_MARKER).write_text(f"{_TEMP_TEXT} of {shown(of.name)} (pid {os.getpid()}); removed when it is done\n",
+                                      encoding="utf-8")  # whatever the locale: a name may be any text
 
 
 def is_own_temporary(folder: Path) -> bool:
