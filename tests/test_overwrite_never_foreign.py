@@ -300,3 +300,13 @@ def test_the_app_s_save_keeps_its_map_html_and_refuses_a_user_s_file(slam, run):
         with keeping_unsaved_files(run):
             slam.save(run)
     assert _digest(run) == before and not list(run.parent.glob(".run.*"))
+
+
+def test_the_app_s_export_html_replaces_only_a_map_slamkit_wrote(tmp_path):
+    """:meth:`SlamApp.export_html` asks this before it writes over an existing file."""
+    from slamkit.viz.app import _is_slamkit_map
+
+    mine, ours = tmp_path / "map.html", tmp_path / "ours.html"
+    mine.write_text("<html><title>my thesis figure</title></html>")
+    ours.write_text("<html><title>slamkit map: default</title></html>")
+    assert not _is_slamkit_map(mine) and _is_slamkit_map(ours) and not _is_slamkit_map(tmp_path)

@@ -299,10 +299,13 @@ def protected_reason(path: str | os.PathLike) -> str | None:
             return "is the home folder"
         if real in home.parents:
             return f"holds the home folder {home}"
-    cwd = _resolved(Path.cwd())
+    try:
+        cwd = _resolved(Path.cwd())
+    except OSError:  # the current folder was removed: nothing to protect there
+        cwd = None
     if real == cwd:
         return "is the current folder"
-    if real in cwd.parents:
+    if cwd is not None and real in cwd.parents:
         return "holds the current folder"
     with contextlib.suppress(OSError):
         if os.path.ismount(real):
