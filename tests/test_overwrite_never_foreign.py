@@ -260,10 +260,15 @@ def test_ablate_never_writes_into_the_home_folder_or_a_folder_of_other_files(tmp
     home = _home(tmp_path)
     monkeypatch.setenv("HOME", str(home))
     before = _digest(home)
-    for out, why in ((home, "is the home folder"), (home / "thesis", "not a slamkit sweep (thesis.tex)")):
+    results = tmp_path / "results"  # the user's own results.csv, named as a sweep's: not written over
+    results.mkdir()
+    (results / "results.csv").write_text("mine\n")
+    before_results = _digest(results)
+    for out, why in ((home, "is the home folder"), (home / "thesis", "not a slamkit sweep (thesis.tex)"),
+                     (results, "not a slamkit sweep (results.csv)")):
         assert main(["ablate", "default", "--grid", "max_frames=3", "--out", str(out), "--workers", "0", "-q"]) == 2
         assert why in _one_line(capsys.readouterr().err)
-    assert _digest(home) == before
+    assert _digest(home) == before and _digest(results) == before_results
 
 
 def test_gt_overwrite_replaces_only_a_trajectory_slamkit_wrote(tmp_path, capsys):

@@ -262,7 +262,8 @@ def _foreign_names(path: Path, names: list[str], kind: str) -> list[str]:
     if kind == "sweep":  # a sweep writes its own files among others (never replaces or removes one)
         if (path / SWEEP_FILE).is_file():
             return []
-        return [n for n in names if not SWEEP_ENTRIES.match(n)]
+        own = SWEEP_ENTRIES if (path / "runs").is_dir() else _SWEEP_TEMPORARY  # a sweep not yet marked: its runs/
+        return [n for n in names if not own.match(n)]  # the user's results.csv alone is never written over
     raise ValueError(f"kind must be one of {', '.join(OUTPUT_KINDS)} (got {kind!r})")
 
 
@@ -446,6 +447,7 @@ REPORT_MARKER = ".slamkit-report"
 """File marking a folder that holds a report written by ``slamkit eval --out`` (replaced as a whole)."""
 SWEEP_FILE = "sweep.json"
 SWEEP_ENTRIES = re.compile(r"^(sweep\.json|runs|results\.(csv|parquet|md)|effects\.png|\..*\.tmp)$")
+_SWEEP_TEMPORARY = re.compile(r"^(runs|\..*\.tmp)$")
 
 _OWN_MARKERS = (RUN_MARKER, SESSION_MARKER, EXPORT_MARKER, REPORT_MARKER)
 
