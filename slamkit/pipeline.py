@@ -99,8 +99,7 @@ class Slam:
             config = SlamConfig.preset(config)
         self.config = config.validate()
         self.source_spec = str(source) if isinstance(source, (str, Path)) else getattr(source, "spec", None)
-        """How the source was opened (a path or spec), recorded in sessions so ``Slam.resume`` and ``export``
-        can reopen it (a source from :func:`~slamkit.sources.open_source` knows its own)."""
+        """How the source was opened (a spec; an ``open_source`` source's own), so resume and export reopen it."""
         if isinstance(source, (str, Path)):
             numbers = config.camera if config.camera and config.camera != "auto" and not is_camera_path(
                 config.camera) else None  # "auto" and a camera.txt are applied by reset()
