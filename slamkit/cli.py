@@ -19,7 +19,7 @@ from tqdm import tqdm
 from .ablate import STATUS_LOST, STATUS_OK, check_sweep_args, connect, markdown_table, parse_grid, plan, sweep
 from .camera import parse_camera_values
 from .config import PRESETS, SlamConfig, is_camera_path
-from .errors import SlamkitError
+from .errors import SlamkitError, shown
 from .eval import evaluate
 from .eval.metrics import ate_line
 from .eval.report import check_posed, evaluate_run
@@ -51,8 +51,9 @@ def _add_config_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--init-frames", type=int, help="initialization window N (20)")
     g.add_argument("--init-strategy", choices=["best_pair", "first_inliers"])
     g.add_argument("--mapper", choices=list(MAPPER_METHODS),
-                   help="how keyframes make map points: colmap (COLMAP's triangulator, default) or local "
-                        "(ORB-SLAM's local mapping: created, checked, culled and fused)")
+                   help="how keyframes make map points: local (ORB-SLAM's local mapping: created, checked, culled "
+                        "and fused) or colmap (COLMAP's triangulator); default: "
+                        f"{SlamConfig().mapper.method}")
     g.add_argument("--camera", metavar="auto|RUN_DIR|F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
                    help="intrinsics in pixels instead of the source's: a focal length (principal point at the "
                         "centre) or fx,fy,cx,cy with optional OpenCV distortion; 'auto' estimates the focal "
@@ -332,7 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("source")
     g.add_argument("out", help="the TUM file to write (an existing file only with --overwrite; never inside the "
                                "source or a run folder)")
-    g.add_argument("--overwrite", action="store_true", help="replace OUT when it exists")
+    g.add_argument("--overwrite", action="store_true",
+                   help="replace OUT when it exists and is a trajectory slamkit wrote (never another file)")
     g.add_argument("--camera", metavar="F|FX,FY,CX,CY[,K1,K2,P1,P2[,K3]]",
                    help="intrinsics, applied before the source is opened (e.g. a TUM layout without a freiburg name)")
     g.set_defaults(func=cmd_gt)
@@ -349,7 +351,8 @@ def _add_run_parser(sub) -> None:
                    help="run folder: a new or empty folder, or an earlier slamkit run (replaced atomically; keeps a "
                         "session/ to resume); never inside the source")
     r.add_argument("--overwrite", action="store_true",
-                   help="replace --out even when it holds other files than a slamkit run (they are deleted)")
+                   help="accepted for older scripts: an earlier slamkit run in --out is replaced without it, and a "
+                        "folder holding anything else never is (nor the home or current folder)")
     r.add_argument("--resume", action="store_true",
                    help="continue the run saved in --out (its session/) if there is one: same source, the saved "
                         "config changed only by the options given; else start a new run")
@@ -391,6 +394,10 @@ def _add_ablate_parser(sub) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    for stream in (sys.stdout, sys.stderr):  # a non-UTF-8 locale (LC_ALL=C): a name is shown escaped, never a crash
+        if stream is not None and (getattr(stream, "encoding", None) or "utf-8").lower().replace("-", "") != "utf8":
+            with contextlib.suppress(AttributeError, ValueError, OSError):
+                stream.reconfigure(errors="backslashreplace")
     args = build_parser().parse_args(argv)
     handler = _SignalsInterrupt()
     previous = handler.install()
@@ -413,6 +420,12 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{e.filename}: " if e.filename else ""
         print(f"slamkit: error: {where}{e.strerror or e} (the operating system refused it; check the path)",
               file=sys.stderr)
+        return EXIT_USAGE
+    except UnicodeError as e:  # a name this locale cannot encode, passed to a library that needs text
+        handler.active = False
+        print(f"slamkit: error: {shown(str(e))}: a file name that the locale's encoding "
+              f"({sys.getfilesystemencoding()}) cannot write; nothing was kept — use a UTF-8 locale "
+              "(e.g. LC_ALL=C.UTF-8) or a plain ASCII name", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt as e:  # Ctrl-C (or SIGTERM / SIGHUP: Interrupted) outside a run's own handling
         handler.active = False

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import numbers
 import os
+import re
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
@@ -279,7 +280,7 @@ fewer good corners than this)."""
 
 RANGES: dict[str, str | tuple[str, str]] = {
     "num_features": (f"[50, {MAX_FEATURES}]", "more keypoints than pixels are never found"),
-    "frame_skip": "[1, inf)", "max_frames": ("[1, inf)", "or None: all"), "relocalization_candidates": "[0, inf)",
+    "frame_skip": "[1, inf)", "max_frames": ("[1, inf)", "or None: all"), "relocalization_candidates": "[0, 1000]",
     "max_lost_frames": "[1, inf)",
     "thumbnail_width": ("[0, 2048]", "0: none; every keyframe keeps one in memory"),
     "seed": ("[0, inf)", "any non-negative integer"),
@@ -339,6 +340,9 @@ def _replace(obj: Any, name: str, value: Any, key: str) -> Any:
         raise ConfigError(f"{key}: {e}") from None
 
 
+_E_NOTATION = re.compile(r"[+-]?\d+(\.\d*)?[eE][+-]?\d+")
+
+
 def _coerce(current: Any, value: Any, key: str, kind: str = "") -> Any:
     """Convert ``value`` to the type of the current value (strings from the CLI, numpy scalars, ...); an
     optional field whose value is None to the type its annotation ``kind`` names."""
@@ -358,6 +362,8 @@ def _coerce(current: Any, value: Any, key: str, kind: str = "") -> Any:
                 raise ValueError(value)
             return bool(value)
         if isinstance(current, int):
+            if isinstance(value, str) and _E_NOTATION.fullmatch(value.strip()):
+                value = float(value)  # "1e9": an integer written in e-notation, then checked against its range
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError(value)
             return int(value)

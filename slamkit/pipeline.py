@@ -97,8 +97,8 @@ class Slam:
         elif isinstance(config, str):
             config = SlamConfig.preset(config)
         self.config = config.validate()
-        self.source_spec = str(source) if isinstance(source, (str, Path)) else None
-        """How the source was opened (a path or spec), recorded in sessions so ``Slam.resume`` can reopen it."""
+        self.source_spec = str(source) if isinstance(source, (str, Path)) else getattr(source, "spec", None)
+        """How the source was opened (a spec; an ``open_source`` source's own), so resume and export reopen it."""
         if isinstance(source, (str, Path)):
             source = open_for_config(source, config)
         self.source = source

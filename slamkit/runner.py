@@ -5,8 +5,9 @@
 
 What :func:`run_to_folder` guarantees, in order:
 
-1. ``out`` is checked before any frame is read (:func:`slamkit.io.run_dir.check_out_dir`): a user's folder is
-   never replaced without ``overwrite``, the input is never inside or equal to the output, an unwritable
+1. ``out`` is checked before any frame is read (:func:`slamkit.io.run_dir.check_out_dir`): only an empty
+   folder or an earlier slamkit run is replaced (``overwrite`` widens nothing: a user's folder, the home or
+   current folder is never replaced), the input is never inside or equal to the output, an unwritable
    place fails at once.
 2. ``out`` is locked for the whole run (:func:`slamkit.io.run_dir.out_dir_lock`): a second writer fails fast.
 3. SIGINT, SIGTERM and SIGHUP stop the run between frames (:class:`slamkit.interrupt.StopRequest`): the frame

@@ -92,7 +92,7 @@ Every other scalar field is saved under its own name, so a new counter in the st
 def save_session(slam: "Slam", out_dir: str | Path) -> Path:
     """Write ``slam``'s session to ``out_dir`` (replaced atomically); returns the folder."""
     out_dir = check_output(out_dir, "session", [getattr(slam, "source_spec", None), slam.source], flag="out_dir")
-    with out_dir_lock(out_dir, flag="out_dir", what="session folder"), atomic_dir(out_dir) as tmp:
+    with out_dir_lock(out_dir, flag="out_dir", what="session folder"), atomic_dir(out_dir, kind="session") as tmp:
         write_session(slam, tmp)
         write_manifest(tmp, SESSION_MARKER)  # sizes and checksums, checked before it is read
     return out_dir

@@ -25,13 +25,14 @@ SESSION_DIR = "session"
 """The session folder's name inside a run folder (:data:`slamkit.session.SESSION_DIR`)."""
 
 
-def source_identity(source) -> dict:
-    """Name, frame count, a digest of frame ids and timestamps, and the intrinsics of a frame source."""
+def source_identity(source, frames: int | None = None) -> dict:
+    """Name, frame count, a digest of frame ids and timestamps, and the intrinsics of a frame source (the
+    digest of its first ``frames`` frames when given)."""
     h = hashlib.sha256()
     for name, dtype in (("frame_ids", np.int64), ("timestamps", np.float64)):
         values = getattr(source, name, None)
         if values is not None:
-            h.update(np.ascontiguousarray(np.asarray(values, dtype)).tobytes())
+            h.update(np.ascontiguousarray(np.asarray(values, dtype)[:frames]).tobytes())
     cam = getattr(source, "camera", None)
     return {"kind": source_kind(source), "name": str(getattr(source, "name", type(source).__name__)),
             "frames": int(len(source)), "digest": h.hexdigest()[:16],
@@ -62,7 +63,12 @@ def check_source(saved: dict, source, folder: Path) -> None:
     problems = []
     if now["name"] != saved["name"]:
         problems.append(f"name {saved['name']!r} vs {now['name']!r}")
-    if now["frames"] != saved["frames"]:
+    if saved.get("spec") and saved["spec"] == getattr(source, "spec", None) and saved["frames"] < now["frames"]:
+        # the same spec, opened with max_frames in Python (open_source(spec, max_frames=N)), resumed on the whole
+        # source: its first frames must be the saved ones
+        if source_identity(source, saved["frames"])["digest"] != saved["digest"]:
+            problems.append(f"different frame ids or timestamps in the first {saved['frames']} frames")
+    elif now["frames"] != saved["frames"]:
         problems.append(f"{saved['frames']} frames vs {now['frames']}")
     elif now["digest"] != saved["digest"]:
         problems.append("different frame ids or timestamps")

@@ -112,9 +112,12 @@ def test_gt_writes_a_new_file_and_replaces_only_with_overwrite(tmp_path, tum_sou
     assert main(["gt", str(tum_source), str(out)]) == 0
     first = out.read_bytes()
     assert len(read_tum(out)) == 6
-    out.write_text("changed\n")
+    out.write_text(first.decode().replace("1.", "2.", 1))  # a trajectory slamkit wrote, changed
     assert main(["gt", str(tum_source), str(out), "--overwrite"]) == 0
     assert out.read_bytes() == first and not list(tmp_path.glob(".gt.txt*"))  # atomic: no temporary left
+    out.write_text("changed\n")  # not a trajectory slamkit wrote: kept, even with --overwrite (issue 50)
+    assert main(["gt", str(tum_source), str(out), "--overwrite"]) == 2
+    assert "not a trajectory file slamkit wrote" in capsys.readouterr().err and out.read_text() == "changed\n"
 
 
 def test_a_second_writer_of_one_output_fails_at_once(tmp_path, tum_source, run_folder, capsys):

@@ -74,9 +74,9 @@ def test_a_folder_of_other_files_is_refused_before_any_work(tmp_path, capsys):
     (run / "notes.txt").write_text("mine")
     assert main([*RUN, "--max-frames", "5", "--init-frames", "2", "--out", str(run)]) == 2
     assert "(notes.txt)" in capsys.readouterr().err and (run / "notes.txt").read_text() == "mine"
-    # explicit --overwrite replaces the folder
-    assert main([*RUN, "--max-frames", "5", "--init-frames", "2", "--out", str(d), "--overwrite"]) in RAN
-    assert not (d / "thesis.tex").exists() and (d / RUN_MARKER).is_file()
+    # --overwrite does not make them slamkit's (issue 50): still refused, nothing deleted
+    assert main([*RUN, "--max-frames", "5", "--init-frames", "2", "--out", str(d), "--overwrite"]) == 2
+    assert "even with --overwrite" in capsys.readouterr().err and (d / "thesis.tex").read_text() == "important"
 
 
 def test_a_slamkit_run_folder_is_replaced_and_an_empty_folder_used(tmp_path, capsys):
@@ -92,20 +92,24 @@ def test_a_slamkit_run_folder_is_replaced_and_an_empty_folder_used(tmp_path, cap
     assert _leftovers(tmp_path, "run") == []
 
 
-def test_python_api_refuses_a_foreign_folder_unless_overwrite(tmp_path):
+def test_python_api_refuses_a_foreign_folder_even_with_overwrite(tmp_path):
     slam = Slam("default", SlamConfig().with_overrides(max_frames=4, init_frames=2))
     slam.run()
     d = tmp_path / "d"
     d.mkdir()
     (d / "data.csv").write_text("1,2,3")
-    with pytest.raises(OutputError, match=r"not a slamkit run \(data.csv\).*overwrite=True"):
+    with pytest.raises(OutputError, match=r"not a slamkit run \(data.csv\).*even with --overwrite"):
         slam.save(d)
+    with pytest.raises(OutputError, match=r"not a slamkit run \(data.csv\)"):
+        save_run(slam, d, overwrite=True)
     assert (d / "data.csv").read_text() == "1,2,3"
     with pytest.raises(OutputError, match="not a slamkit run"):  # defence in depth: atomic_dir alone refuses too
-        with atomic_dir(d):
+        with atomic_dir(d, overwrite=True):
             pass
-    save_run(slam, d, overwrite=True)
-    assert not (d / "data.csv").exists() and (d / "summary.json").is_file()
+    assert sorted(p.name for p in d.iterdir()) == ["data.csv"]
+    (d / "data.csv").unlink()  # the user's decision, not slamkit's
+    save_run(slam, d)
+    assert (d / "summary.json").is_file()
     slam.save(d)  # now a slamkit run: replaced without asking
     check_run(d)
 

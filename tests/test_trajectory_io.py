@@ -17,6 +17,7 @@ from slamkit.geometry import pose_from_tum
 from slamkit.io import (atomic_dir, atomic_write_bytes, atomic_write_text, read_kitti, read_trajectory,
                         read_tum, write_kitti, write_tum)
 from slamkit.io import trajectory as trajectory_module
+from slamkit.io.run_dir import write_manifest
 from slamkit.types import Trajectory
 
 GOOD_Q = "0 0 0 1"
@@ -291,18 +292,24 @@ def test_atomic_dir_replaces_folder_or_keeps_the_old_one(tmp_path):
         assert d != out and d.parent == tmp_path
         (d / "a.txt").write_text("first")
     assert (out / "a.txt").read_text() == "first"
-    with pytest.raises(OutputError, match="not a slamkit run"):  # a folder slamkit did not write is never replaced
-        with atomic_dir(out) as d:
-            (d / "b.txt").write_text("second")
+    for overwrite in (False, True):  # a folder slamkit did not write (no marker) is never replaced (issue 50)
+        with pytest.raises(OutputError, match="not a slamkit run"):
+            with atomic_dir(out, overwrite=overwrite) as d:
+                (d / "b.txt").write_text("second")
     assert sorted(p.name for p in out.iterdir()) == ["a.txt"]
-    with atomic_dir(out, overwrite=True) as d:  # ... unless asked to
+    (out / "a.txt").unlink()
+    with atomic_dir(out) as d:  # a run folder: its manifest lists what it wrote
+        (d / "a.txt").write_text("first")
+        write_manifest(d)
+    with atomic_dir(out, overwrite=True) as d:
         (d / "b.txt").write_text("second")
-    assert sorted(p.name for p in out.iterdir()) == ["b.txt"]
+        write_manifest(d)
+    assert sorted(p.name for p in out.iterdir()) == [".slamkit-run", "b.txt"]
     with pytest.raises(KeyError):
         with atomic_dir(out, overwrite=True) as d:
             (d / "c.txt").write_text("third")
             raise KeyError("boom")
-    assert sorted(p.name for p in out.iterdir()) == ["b.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [".slamkit-run", "b.txt"]
     assert leftovers(tmp_path, {"run"}) == []
 
 

@@ -22,7 +22,8 @@ import numpy as np
 
 from ..errors import OutputError, SessionError, SlamkitError, shown
 from ..io import atomic_dir, atomic_write_text
-from ..io.run_dir import REPORT_MARKER, RUN_MARKER, check_output, is_run_folder, out_dir_lock
+from ..io.run_dir import (PLOT_FILES, REPORT_FILES, REPORT_MARKER, REPORT_MARKS, RUN_MARKER, check_output,
+                           is_own_report_file, is_run_folder, out_dir_lock, write_listing)
 from ..io.saved import check_json, check_run
 from ..io.trajectory import check_input_file, read_tum
 from ..types import Trajectory
@@ -32,17 +33,9 @@ from .pairing import load_pair, read_frame_table
 __all__ = ["evaluate_run"]
 
 
-REPORT_FILES = ("report.md", "report.html", "evaluation.json", "map.html")
-PLOT_FILES = frozenset({"trajectory.png", "error_over_time.png", "timings.png"})
-_MD_MARK = "<!-- slamkit eval report -->"
-_HTML_MARK = '<meta name="generator" content="slamkit eval">'
-_MAP_MARK = "<!-- slamkit eval map -->"
-_OWN_CONTENT = {  # what makes a file slamkit's: its marker, or the text of a report an older slamkit wrote
-    "report.md": (_MD_MARK, "(Umeyama on the matched camera centres), timestamps matched within"),
-    "report.html": (_HTML_MARK, "<title>slamkit evaluation</title>"),
-    "evaluation.json": ('"generator": "slamkit eval"', '"alignment": "sim3"'),
-    "map.html": (_MAP_MARK, "slamkit map"),
-}
+_MD_MARK, _HTML_MARK, _MAP_MARK = REPORT_MARKS["report.md"], REPORT_MARKS["report.html"], REPORT_MARKS["map.html"]
+"""The marks that make a report file slamkit's (:data:`slamkit.io.run_dir.REPORT_OWN_CONTENT`): a run folder's
+replacement keeps, and ``eval`` never overwrites, a file without one."""
 
 
 def _stats(gt: Trajectory, est: Trajectory, max_dt: float) -> tuple[dict, object, object]:
@@ -104,9 +97,9 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
         _write_report(run, run, result, summary, est, gt_traj, kf_traj, a, r, plots, map_view)
     else:
         with out_dir_lock(dest, flag="out", what="report folder"):
-            with atomic_dir(dest, overwrite=(dest / REPORT_MARKER).is_file()) as tmp:
-                (tmp / REPORT_MARKER).write_text(f"slamkit eval report of {shown(run.resolve())}\n")
+            with atomic_dir(dest, kind="report") as tmp:
                 _write_report(run, tmp, result, summary, est, gt_traj, kf_traj, a, r, plots, map_view)
+                write_listing(tmp, REPORT_MARKER, f"slamkit eval report of {shown(run.resolve())}")
         for key in ("report_md", "report_html"):
             result[key] = str(dest / Path(result[key]).name)
     return result
@@ -149,11 +142,7 @@ def _check_own_report_files(run: Path) -> None:
         path = run / name
         if not (path.exists() or path.is_symlink()):
             continue
-        text = ""
-        if path.is_file() and not path.is_symlink():
-            with open(path, "rb") as f:
-                text = f.read(1 << 20).decode("utf-8", "replace")
-        if not any(mark in text for mark in _OWN_CONTENT[name]):
+        if not is_own_report_file(path):
             raise OutputError(f"{path}: not a report slamkit wrote (no slamkit marker), so it is kept and nothing "
                               "was written: move it away, or pass --out DIR for the report")
     plots = run / "plots"

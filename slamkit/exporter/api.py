@@ -12,7 +12,7 @@ from ..config import SlamConfig
 from ..errors import ConfigError, OutputError, SlamkitError, shown
 from ..features import create_extractor
 from ..io.atomic import atomic_dir
-from ..io.run_dir import EXPORT_MARKER, check_output, out_dir_lock
+from ..io.run_dir import EXPORT_MARKER, check_output, out_dir_lock, write_listing
 from ..sources.base import FrameSource
 from .camera import ExportCamera
 from .images import ProgressCallback, check_unchanged, file_name, read_gray, reopen_source, write_image
@@ -117,8 +117,7 @@ def _export(run_dir: Path, out: Path, format: str, frames: str, undistort: bool 
     check_unchanged(run, src, selected)  # the images the run posed, or nothing is written
     camera = ExportCamera.create(run.camera, bool(undistort))
     names = {f.index: file_name(run, src, f, camera) for f in selected}
-    with atomic_dir(out, overwrite=(out / MARKER).is_file()) as tmp:  # _check_out allowed it
-        (tmp / MARKER).write_text(f"slamkit export of {shown(run_dir.resolve())}\n")
+    with atomic_dir(out, kind="export") as tmp:  # _check_out allowed it; atomic_dir checks again
         extra = _write_images(run, src, selected, camera, tmp / "images", names, progress)
         rec = build_model(run.model, selected, camera, names, extra)
         if format == "colmap":
@@ -127,6 +126,7 @@ def _export(run_dir: Path, out: Path, format: str, frames: str, undistort: bool 
         else:
             write_transforms(tmp / "transforms.json", camera, rec)
             write_ply(tmp / PLY_NAME, rec)
+        write_listing(tmp, MARKER, f"slamkit export of {shown(run_dir.resolve())}")  # what a later export replaces
     return ExportResult(out, format, rec.num_reg_images(), rec.num_points3D(),
                         int(sum(len(p) for _, p in extra.values())), camera.model_name,
                         float(rec.compute_mean_reprojection_error()))

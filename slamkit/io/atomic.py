@@ -25,7 +25,7 @@ from pathlib import Path
 
 from ..errors import OutputError
 from ..interrupt import signals_blocked
-from .run_dir import TEMP_MARKER, is_replaceable, mark_temporary, not_a_regular_file
+from .run_dir import TEMP_MARKER, mark_temporary, not_a_regular_file, replace_refusal
 
 __all__ = ["atomic_write_text", "atomic_write_bytes", "atomic_dir"]
 
@@ -122,7 +122,7 @@ def atomic_write_text(path: str | os.PathLike, text: str | Iterable[str], encodi
 
 
 @contextlib.contextmanager
-def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Path]:
+def atomic_dir(path: str | os.PathLike, overwrite: bool = False, kind: str = "run") -> Iterator[Path]:
     """Context manager: fill a temporary sibling folder, which replaces ``path`` when the block succeeds.
 
     ``with atomic_dir("out/run1") as d: (d / "a.txt").write_text(...)`` — inside the block ``d`` is the
@@ -130,17 +130,22 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
     ``out/run1`` is moved aside first and deleted afterwards. If the block raises (an error, Ctrl-C, SIGTERM
     under :mod:`slamkit.interrupt`), the temporary folder is deleted and the old folder is untouched; the two
     renames run with those signals blocked, and are undone if anything still comes between them.
-    OutputError when the parent is not writable, ``path`` is a file, or ``path`` is a non-empty folder that
-    slamkit did not write (:func:`slamkit.io.run_dir.is_replaceable`) and ``overwrite`` is False: a
-    user's folder is never deleted by accident.
+
+    Only slamkit's own folders are replaced: an existing ``path`` must be an empty folder or a slamkit
+    ``kind`` output (``run``, ``session``, ``export``, ``report``) holding nothing else, and never the home
+    folder, the current folder, one holding either or a file system root
+    (:func:`slamkit.io.run_dir.replace_refusal`). This is checked when the block starts and again just before
+    the old folder is moved aside; OutputError otherwise, and nothing is moved or deleted. ``overwrite`` is
+    accepted for older callers and widens nothing. OutputError too when the parent is not writable or
+    ``path`` is a file.
     """
     path = Path(path)
     parent = _prepare_parent(path)
     if path.exists() and not path.is_dir():
         raise OutputError(f"{path}: exists and is not a folder, will not replace it with one")
-    if not overwrite and not is_replaceable(path):
-        raise OutputError(f"{path}: folder is not empty and is not a slamkit run or session; will not replace it "
-                          "(choose another folder, or overwrite=True / --overwrite)")
+    refusal = replace_refusal(path, kind)
+    if refusal:
+        raise OutputError(f"{path}: {refusal}")
     try:
         tmp = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".tmp"))
     except OSError as e:
@@ -150,6 +155,9 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
     except OSError as e:
         _remove_tree(tmp)
         raise OutputError(write_failure(path, e, 0, path.exists(), "folder")) from None
+    except BaseException:
+        _remove_tree(tmp)
+        raise
     existed = path.exists()
     try:
         yield tmp
@@ -157,7 +165,7 @@ def atomic_dir(path: str | os.PathLike, overwrite: bool = False) -> Iterator[Pat
         mask = os.umask(0)
         os.umask(mask)
         os.chmod(tmp, 0o777 & ~mask)
-        backup = _commit(tmp, path, parent)
+        backup = _commit(tmp, path, parent, kind)
     except (OSError, OutputError) as e:  # e.g. a full disk while the block wrote: one line, old folder untouched
         written = _tree_size(tmp)
         _remove_tree(tmp)
@@ -214,12 +222,16 @@ def _remove_tree(folder: Path) -> None:
         raise pending
 
 
-def _commit(tmp: Path, path: Path, parent: Path) -> Path | None:
-    """Rename ``tmp`` to ``path``, the old ``path`` moved into a backup folder first (returned, to delete)."""
+def _commit(tmp: Path, path: Path, parent: Path, kind: str) -> Path | None:
+    """Rename ``tmp`` to ``path``, the old ``path`` moved into a backup folder first (returned, to delete),
+    only when it is still a folder slamkit may replace (a file put into it since the block began keeps it)."""
     backup: Path | None = None
     try:
         with signals_blocked():
-            if path.exists():
+            if path.exists() or path.is_symlink():
+                refusal = replace_refusal(path, kind)
+                if refusal:
+                    raise OutputError(f"{path}: {refusal}")
                 backup = Path(tempfile.mkdtemp(dir=parent, prefix=f".{path.name}.", suffix=".old"))
                 mark_temporary(backup, path)
                 os.replace(path, backup / path.name)

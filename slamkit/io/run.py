@@ -49,15 +49,16 @@ def save_run(slam: "Slam", out_dir: str | Path, session: bool = True, overwrite:
     resumable session in ``out_dir/session/`` unless ``session=False``, and the marker ``.slamkit-run``
     listing the size and SHA-256 of every file written (readers check them first).
 
-    ``out_dir`` must pass :func:`slamkit.io.run_dir.check_out_dir`: a folder holding other files than a
-    slamkit run is refused (OutputError) unless ``overwrite=True``, and a folder equal to, inside or holding
-    the source is always refused. ``lock``: hold ``out_dir``'s lock while writing (False when the caller
-    already holds it, as ``slamkit run`` does for the whole run).
+    ``out_dir`` must pass :func:`slamkit.io.run_dir.check_out_dir`: a new or empty folder, or a slamkit run
+    holding nothing else (replaced); anything else is refused (OutputError), ``overwrite`` or not: a folder
+    holding other files, the home or current folder, a folder equal to, inside or holding the source.
+    ``overwrite`` is accepted for older callers and widens nothing. ``lock``: hold ``out_dir``'s lock while
+    writing (False when the caller already holds it, as ``slamkit run`` does for the whole run).
     """
     out_dir = Path(out_dir)
     check_out_dir(out_dir, [getattr(slam, "source_spec", None), slam.source], overwrite, flag="out_dir")
     with out_dir_lock(out_dir, flag="out_dir") if lock else contextlib.nullcontext():
-        with atomic_dir(out_dir, overwrite=overwrite) as tmp:
+        with atomic_dir(out_dir, kind="run") as tmp:
             _write_run(slam, tmp, session)
     return out_dir
 

@@ -1,14 +1,14 @@
 """Run folders: how slamkit recognises its own output folders, decides whether ``--out`` may be written, and
 keeps two processes from writing one folder at once.
 
-- **Marker and manifest.** Every saved run holds ``.slamkit-run`` (JSON: format, version, a save id, and the
-  size and SHA-256 of every file the save wrote); a session folder holds ``.slamkit-session.json`` alike. The
-  manifest lets readers check a saved run before reading it (:mod:`slamkit.io.saved`), and the marker says
-  "slamkit wrote this folder": only such a folder is ever replaced without ``overwrite=True``.
+- **Marker and manifest** (:mod:`slamkit.io.ownership`, re-exported here): ``.slamkit-run`` lists the size
+  and SHA-256 of every file a save wrote; readers check a saved run against it (:mod:`slamkit.io.saved`), and
+  it says "slamkit wrote this folder": only such a folder (of the output's kind, holding nothing else) or an
+  empty one is ever replaced, ``overwrite`` or not (:func:`~slamkit.io.ownership.replace_refusal`).
 - **``check_out_dir``** runs before any frame is processed: a missing or empty folder, or a slamkit run
-  folder, is fine; a file, a folder of other files (without ``overwrite``), a folder equal to, inside or
-  containing the source, the current folder or one holding it are refused; the parent is created and a
-  test file written, so an unwritable ``--out`` fails in a second, not after the whole run.
+  folder, is fine; a file, a folder of other files, a folder equal to, inside or containing the source, the
+  home or current folder or one holding either are refused; the parent is created and a test file written,
+  so an unwritable ``--out`` fails in a second, not after the whole run.
 - **``out_dir_lock``**: an exclusive ``flock`` on ``PARENT/.NAME.lock`` for the whole run; a second writer
   fails at once naming the folder and the other process. The OS releases it when a process dies, so a lock
   file left by a killed process never blocks.
@@ -22,129 +22,28 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import hashlib
-import json
 import os
 import re
 import shutil
 import stat
 import tempfile
-import time
-import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from ..errors import OutputError, shown
+from .ownership import (EXPORT_MARKER, LISTING_HEADER, MANIFEST_FORMATS, MANIFEST_VERSION, OUTPUT_KINDS,  # noqa: F401
+                        PLOT_FILES, REPORT_FILES, REPORT_MARKER, REPORT_MARKS, REPORT_OWN_CONTENT, RUN_ENTRIES,
+                        RUN_MARKER, SESSION_ENTRY, SESSION_MARKER, SWEEP_ENTRIES, SWEEP_FILE, TEMP_MARKER, TUM_HEADER,
+                        _OWN_MARKERS, _even_with_overwrite, _is_session_dir, _resolved, file_sha256, foreign_entries,
+                        found_text, is_own_report_file, is_replaceable, is_run_folder, protected_reason,
+                        read_manifest, replace_refusal, save_id, write_listing, write_manifest)
 
 __all__ = ["EXPORT_MARKER", "OUTPUT_KINDS", "REPORT_MARKER", "RUN_MARKER", "SESSION_MARKER", "TEMP_MARKER",
-           "check_out_dir", "check_output", "is_replaceable", "is_run_folder", "mark_temporary", "out_dir_lock",
-           "read_manifest", "remove_stale_temporaries", "source_paths", "write_manifest"]
-
-RUN_MARKER = ".slamkit-run"
-SESSION_MARKER = ".slamkit-session.json"
-MANIFEST_FORMATS = {RUN_MARKER: "slamkit-run", SESSION_MARKER: "slamkit-session-files"}
-MANIFEST_VERSION = 1
-
-RUN_ENTRIES = frozenset({
-    RUN_MARKER, "trajectory_tum.txt", "keyframes_tum.txt", "trajectory_kitti.txt", "sparse", "points.ply",
-    "summary.json", "frames.csv", "camera.txt", "groundtruth_tum.txt", "session", "segments",
-    # written later by `slamkit eval` into the run folder
-    "report.md", "report.html", "evaluation.json", "plots", "map.html"})
-"""Top-level names a slamkit run folder may hold: anything else is the user's, and the folder is not replaced."""
-
-SESSION_ENTRY = re.compile(r"^(\.slamkit-session\.json|session\.json|state\.npz|segment_\d+)$")
+           "check_out_dir", "check_output", "foreign_entries", "is_replaceable", "is_run_folder", "mark_temporary",
+           "out_dir_lock", "protected_reason", "read_manifest", "remove_stale_temporaries", "replace_refusal",
+           "source_paths", "write_manifest"]
 
 _PREFIX = re.compile(r"^(tum|kitti|7scenes|sevenscenes|euroc|video|folder):(.*)$", re.S)
-
-
-# ----------------------------------------------------------------------------------------------- manifest
-def file_sha256(path: Path) -> str:
-    """Hex SHA-256 of a file's bytes, read in 1 MiB chunks."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
-def write_manifest(folder: str | os.PathLike, marker: str = RUN_MARKER) -> Path:
-    """Write ``folder/marker``: the size and SHA-256 of every file below ``folder`` (paths relative, with
-    ``/``), a unique save id and the time. Called last, inside the temporary folder of an atomic save."""
-    folder = Path(folder)
-    files = {}
-    for p in sorted(folder.rglob("*")):
-        if p.is_file() and p != folder / marker and p.relative_to(folder).as_posix() != TEMP_MARKER:
-            files[p.relative_to(folder).as_posix()] = {"size": p.stat().st_size, "sha256": file_sha256(p)}
-    meta = {"format": MANIFEST_FORMATS[marker], "version": MANIFEST_VERSION, "id": uuid.uuid4().hex,
-            "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": files}
-    path = folder / marker
-    path.write_text(json.dumps(meta, indent=1))
-    return path
-
-
-def read_manifest(folder: str | os.PathLike, marker: str = RUN_MARKER) -> dict | None:
-    """The manifest in ``folder`` (None when there is none: a folder saved before manifests existed).
-    ValueError (or OSError) with the reason when it cannot be read; :mod:`slamkit.io.saved` names the file."""
-    path = Path(folder) / marker
-    if not path.is_file():
-        return None
-    meta = json.loads(path.read_bytes().decode("utf-8"))
-    if not isinstance(meta, dict) or meta.get("format") != MANIFEST_FORMATS[marker]:
-        raise ValueError(f"not a slamkit manifest (format {meta.get('format') if isinstance(meta, dict) else meta!r})")
-    if meta.get("version") != MANIFEST_VERSION or not isinstance(meta.get("files"), dict):
-        raise ValueError(f"manifest version {meta.get('version')!r} not understood (this slamkit reads "
-                         f"{MANIFEST_VERSION})")
-    return meta
-
-
-def save_id(folder: str | os.PathLike) -> str | None:
-    """The id of the save that wrote the run in ``folder`` (None: none, or unreadable)."""
-    try:
-        return (read_manifest(folder) or {}).get("id")
-    except (OSError, ValueError):
-        return None
-
-
-# ----------------------------------------------------------------------------------------------- what may be replaced
-def _is_session_dir(path: Path) -> bool:
-    try:
-        meta = json.loads((path / "session.json").read_text())
-    except (OSError, ValueError):
-        return False
-    return isinstance(meta, dict) and meta.get("format") == "slamkit-session"
-
-
-def foreign_entries(path: Path) -> list[str]:
-    """Names in folder ``path`` that are not slamkit's (empty: the folder is empty or slamkit's own output:
-    a run folder, marked or saved before markers existed, or a session folder)."""
-    names = sorted(os.listdir(path))
-    if not names:
-        return []
-    if (path / RUN_MARKER).is_file() or ((path / "session" / "session.json").is_file()
-                                         and _is_session_dir(path / "session")):
-        return [n for n in names if n not in RUN_ENTRIES and not n.startswith(f"{RUN_MARKER}.")]
-    if (path / SESSION_MARKER).is_file() or _is_session_dir(path):
-        return [n for n in names if not SESSION_ENTRY.match(n)]
-    return names
-
-
-def is_run_folder(path: str | os.PathLike) -> bool:
-    """True when ``path`` is a folder slamkit saved a run in: its marker, or the session of a run saved
-    before markers existed. Another tool's results folder (trajectory files, a report.md) is not."""
-    path = Path(path)
-    try:
-        return (path / RUN_MARKER).is_file() or ((path / "session" / "session.json").is_file()
-                                                 and _is_session_dir(path / "session"))
-    except OSError:
-        return False
-
-
-def is_replaceable(path: str | os.PathLike) -> bool:
-    """True when ``path`` is missing, an empty folder, or a folder slamkit wrote (nothing else in it)."""
-    path = Path(path)
-    if not path.exists():
-        return True
-    return path.is_dir() and not foreign_entries(path)
 
 
 # ----------------------------------------------------------------------------------------------- --out checks
@@ -189,10 +88,6 @@ def _dataset_root(name: str, image: Path) -> Path | None:
     return found
 
 
-def _resolved(p: Path) -> Path:
-    return Path(os.path.realpath(p.expanduser()))
-
-
 def _overlap(out: Path, src: Path) -> str | None:
     o, s = _resolved(out), _resolved(src)
     if o == s:
@@ -204,36 +99,20 @@ def _overlap(out: Path, src: Path) -> str | None:
     return None
 
 
-OUTPUT_KINDS = {"run": "slamkit run", "session": "slamkit session", "export": "slamkit export",
-                "sweep": "slamkit sweep", "report": "slamkit report", "file": "file"}
-"""What each command writes: a run folder (``run``, ``save``, the notebook's Save), a session folder
-(``Slam.save_session``), an export folder, a sweep folder (``ablate``), a report folder (``eval --out``) or a
-single file (``gt``).
-:func:`check_output` knows each kind's own outputs."""
-
-EXPORT_MARKER = ".slamkit-export"
-"""File marking a folder written by :func:`slamkit.exporter.export`."""
-REPORT_MARKER = ".slamkit-report"
-"""File marking a folder that holds a report written by ``slamkit eval --out`` (replaced as a whole)."""
-SWEEP_FILE = "sweep.json"
-SWEEP_ENTRIES = re.compile(r"^(sweep\.json|runs|results\.(csv|parquet|md)|effects\.png|\..*\.tmp)$")
-
-_OWN_MARKERS = (RUN_MARKER, SESSION_MARKER, EXPORT_MARKER, REPORT_MARKER)
-
-
 def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = (), overwrite: bool = False,
                  flag: str = "--out") -> Path:
     """The one check every command that writes goes through, before any work (OutputError naming ``flag``
     and the path otherwise). ``kind``: one of :data:`OUTPUT_KINDS`.
 
-    Always refused, even with ``overwrite``: an empty path; a path component longer than the file system
-    allows; a file system root, the current folder or one holding it (folders); a path equal to, inside or
-    holding a source's file or folder (symlinks resolved); a path inside a slamkit run, session or export
-    folder (their files are listed in a manifest: writing among them breaks the run) — except a run's own
-    ``session/`` being written as part of it; a folder where a file is expected and the reverse.
-    Refused without ``overwrite``: an existing file (kind ``file``); a non-empty folder that is not of
-    ``kind`` (a run folder for ``run``, an export for ``export``, a sweep for ``sweep``). The parent folder
-    is created and a test file written in it, so an unwritable place fails now.
+    Always refused, ``overwrite`` or not: an empty path; a path component longer than the file system
+    allows; a file system root; a folder :func:`protected_reason` names (the home folder, the current folder,
+    one holding either, a mount point); a path equal to, inside or holding a source's file or folder
+    (symlinks resolved); a path inside a slamkit run, session or export folder (their files are listed in a
+    manifest: writing among them breaks the run); a folder where a file is expected and the reverse; an
+    existing folder holding anything but a slamkit ``kind`` output (:func:`replace_refusal`: nothing slamkit
+    did not write is ever deleted). ``overwrite`` only lets ``gt`` (kind ``file``) replace an existing
+    trajectory file slamkit wrote (or an empty file); a slamkit folder of ``kind`` is replaced without it.
+    The parent folder is created and a test file written in it, so an unwritable place fails now.
     ``sources``: specs, paths or opened sources (:func:`source_paths`).
     """
     what = OUTPUT_KINDS[kind]
@@ -247,10 +126,11 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
     real = _resolved(out)
     if real.parent == real:
         raise OutputError(f"{flag} {out}: a file system root cannot be a {noun}")
-    cwd = _resolved(Path.cwd())
-    if kind != "file" and (real == cwd or real in cwd.parents):
-        raise OutputError(f"{flag} {out}: is the current folder{'' if real == cwd else ' or holds it'}; "
-                          f"give a new folder, e.g. runs/NAME")
+    why = protected_reason(out) if kind != "file" else None
+    if why:
+        example = "runs/NAME" if why.endswith("current folder") else shown(out / "runs" / "NAME")
+        raise OutputError(f"{flag} {out}: {why}; slamkit never replaces or writes into it{_even_with_overwrite(kind)} "
+                          f"— give a new folder, e.g. {example}")
     for src in source_paths_all(sources):
         why = _overlap(out, src)
         if why:
@@ -275,24 +155,31 @@ def check_output(out: str | os.PathLike, kind: str = "run", sources: Iterable = 
             if not overwrite:
                 raise OutputError(f"{flag} {out}: exists; nothing was written — choose another file name, or "
                                   "pass --overwrite to replace it")
+            if not _own_trajectory_file(out):
+                raise OutputError(f"{flag} {out}: exists and is not a trajectory file slamkit wrote (its first line "
+                                  "is not slamkit's TUM header), so it is kept, even with --overwrite; nothing was "
+                                  "written — choose another file name (or remove it yourself if you mean to)")
         elif not out.is_dir():
             raise OutputError(f"{flag} {out}: exists and is not a folder; give a folder for the {what}")
         else:
-            try:
-                foreign = _foreign(out, kind)
-            except OSError as e:
-                raise OutputError(f"{flag} {out}: cannot be listed ({e.strerror or e})") from e
-            if foreign and not overwrite:
-                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-                again = (" to replace it and everything in it" if kind != "sweep" else
-                         " to write the sweep's files among them")
-                raise OutputError(f"{flag} {out}: folder is not empty and is not a {what} ({shown}); nothing was "
-                                  f"written — choose another folder, or pass --overwrite (overwrite=True){again}")
+            why = replace_refusal(out, kind)
+            if why:
+                raise OutputError(f"{flag} {out}: {why}")
     above = next((p for p in out.parents if p.exists()), None)
     if above is not None and not above.is_dir():
         raise OutputError(f"{flag} {out}: cannot be created, {above} is a file")
     _check_writable(out.parent, f"{flag} {out}")
     return out
+
+
+def _own_trajectory_file(path: Path) -> bool:
+    """``path`` is empty or begins with the header slamkit's TUM writer puts first (``gt``'s output)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(TUM_HEADER) + 1)
+    except OSError:
+        return False
+    return head == b"" or head.rstrip(b"\r\n") == TUM_HEADER.encode()
 
 
 def check_out_dir(out: str | os.PathLike, sources: Iterable = (), overwrite: bool = False,
@@ -318,21 +205,6 @@ def not_a_regular_file(path: Path) -> str | None:
         if test(mode):
             return name
     return "not a regular file"
-
-
-def _foreign(out: Path, kind: str) -> list[str]:
-    """Names in folder ``out`` that are not a ``kind`` output's."""
-    names = sorted(os.listdir(out))
-    if kind == "run":
-        return foreign_entries(out)
-    if kind == "session":
-        own = (out / SESSION_MARKER).is_file() or _is_session_dir(out)
-        return [n for n in names if not (own and SESSION_ENTRY.match(n))]
-    if kind in ("export", "report"):
-        return [] if (out / (EXPORT_MARKER if kind == "export" else REPORT_MARKER)).is_file() else names
-    if (out / SWEEP_FILE).is_file():  # a sweep: its own entries (and the user's notes beside them) are fine
-        return []
-    return [n for n in names if not SWEEP_ENTRIES.match(n)]
 
 
 def _inside_output(real: Path) -> Path | None:
@@ -511,16 +383,13 @@ def _read_pid(fd: int) -> int | None:
 
 
 # ----------------------------------------------------------------------------------------------- clean-up
-TEMP_MARKER = ".slamkit-temporary"
-"""File inside every temporary folder (``.NAME.*.tmp``) and moved-aside old folder (``.NAME.*.old``) slamkit
-makes beside an output: only folders holding it are removed or put back by :func:`remove_stale_temporaries`.
-It is removed from a temporary folder just before the folder takes the output's name."""
 _TEMP_TEXT = "slamkit temporary folder"
 
 
 def mark_temporary(folder: Path, of: Path) -> None:
     """Write :data:`TEMP_MARKER` into ``folder``, a temporary folder slamkit just made beside ``of``."""
-    (folder / TEMP_MARKER).write_text(f"{_TEMP_TEXT} of {shown(of.name)} (pid {os.getpid()}); removed when it is done\n")
+    (folder / TEMP_MARKER).write_text(f"{_TEMP_TEXT} of {shown(of.name)} (pid {os.getpid()}); removed when it is done\n",
+                                      encoding="utf-8")  # whatever the locale: a name may be any text
 
 
 def is_own_temporary(folder: Path) -> bool:

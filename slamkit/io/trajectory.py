@@ -29,10 +29,10 @@ from ..errors import ConfigError, FormatError, OutputError, missing_reason
 from ..geometry import pose_from_rows, pose_from_tum, tum_from_pose
 from ..types import Trajectory
 from .atomic import atomic_write_text
+from .ownership import TUM_HEADER  # the first line of every TUM file slamkit writes
 
 __all__ = ["read_tum", "write_tum", "read_kitti", "write_kitti", "read_trajectory", "read_pose_file"]
 
-TUM_HEADER = "# timestamp tx ty tz qx qy qz qw"
 #: a TUM quaternion whose norm is further than this from 1 is rejected (TUM rounds to 4 decimals)
 QUATERNION_NORM_TOL = 1e-2
 #: a KITTI 3x3 block with max |R^T R - I| above this, or det(R) <= 0, is rejected

@@ -105,7 +105,8 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
         if camera is not None:
             raise ConfigError(CAMERA_IN_SPEC)
         _check_kwargs("synthetic", open_synthetic, kw)
-        return open_synthetic(text, frame_skip=frame_skip, max_frames=max_frames, **kw)
+        return _with_spec(open_synthetic(text, frame_skip=frame_skip, max_frames=max_frames, **kw), text,
+                          frame_skip, camera, kw)
     m = _PREFIX.match(text) if not isinstance(spec, Path) else None
     if m is not None:
         layout = "7scenes" if m.group(1) == "sevenscenes" else m.group(1)
@@ -125,4 +126,12 @@ def open_source(spec: str | Path, *, frame_skip: int = 1, max_frames: int | None
     if camera is not None:
         kw["calibration" if layout == "tum" else "camera"] = camera
     _check_kwargs(layout, opener, kw)
-    return opener(path, frame_skip=frame_skip, max_frames=max_frames, **kw)
+    return _with_spec(opener(path, frame_skip=frame_skip, max_frames=max_frames, **kw), text, frame_skip, camera, kw)
+
+
+def _with_spec(source: FrameSource, text: str, frame_skip: int, camera, kw: dict) -> FrameSource:
+    """``source`` with ``source.spec = text`` when ``open_source(text)`` reopens it (its frames, or more of them
+    with ``max_frames``): recorded in a saved run, so ``slamkit run --resume`` and ``slamkit export`` find it."""
+    if frame_skip == 1 and camera is None and not kw:
+        source.spec = text
+    return source

@@ -484,6 +484,11 @@ def ensure_cached_sequence(folder: str | Path, make_source: Callable[[], Synthet
     problem = cache_problem(folder, meta, camera)
     if not problem:
         return folder
+    if folder.is_dir() and any(folder.iterdir()) and not ((folder / "meta.json").is_file() or (
+            (folder / "camera.json").is_file() and (folder / "rgb.txt").is_file())):  # not a cache slamkit wrote
+        raise SourceError(f"{folder}: holds files but no meta.json, so it is not a cache slamkit wrote and is kept "
+                          "(slamkit never deletes what it did not make): move it away, or set SLAMKIT_CACHE to "
+                          "another folder")
     if folder.exists():
         log.warning("slamkit: note: the cache of %s in %s is not usable (%s): rendering it again", what, folder,
                     problem)

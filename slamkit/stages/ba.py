@@ -93,9 +93,9 @@ class BundleAdjustmentConfig:
 
     def validate(self) -> None:
         check_fields(self, "ba", {
-            "local_window": "[1, inf)", "local_iterations": "[1, inf)", "local_max_track_length": "[0, inf)",
+            "local_window": "[1, 10000]", "local_iterations": "[1, 10000]", "local_max_track_length": "[0, inf)",
             "global_growth": "(0, 100]", "global_min_keyframes": "[0, inf)", "global_max_keyframes": "[0, inf)",
-            "global_iterations": "[1, inf)", "max_reproj_error_px": "(0, 1e9]", "min_tri_angle_deg": "[0, 45)",
+            "global_iterations": "[1, 10000]", "max_reproj_error_px": "(0, 1e9]", "min_tri_angle_deg": "[0, 45)",
             "outlier_chi2": ("[0, 1e9]", "0: COLMAP's flat max_reproj_error_px"), "local_passes": "[1, 5]",
             "function_tolerance": "[0, 1)", "radial_keyframes": "[0, inf)",
             "num_threads": ("[-1, 1024]", "-1: all cores, else 1 to 1024 threads")})

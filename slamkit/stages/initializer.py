@@ -97,12 +97,12 @@ class InitializerConfig:
         if self.strategy not in STRATEGIES:
             raise ConfigError(f"initializer.strategy must be one of {STRATEGIES} (got {self.strategy!r})")
         check_fields(self, "initializer", {
-            "init_frames": "[2, inf)", "window_overlap": "[0, 1)", "verify_frames": "[0, inf)",
+            "init_frames": ("[2, 1000]", "frames kept in memory while the initial pair is sought"), "window_overlap": "[0, 1)", "verify_frames": "[0, 1000]",
             "min_verify_ratio": "[0, 1]", "min_verify_inliers": "[4, inf)", "min_matches": "[8, inf)",
             "min_tri_angle_deg": "[0, 45)", "min_inlier_ratio": "(0, 1]", "min_points": "[8, inf)",
-            "min_points_at_end": "[8, inf)", "max_pair_trials": "[1, inf)", "max_error_px": "(0, 1e9]",
+            "min_points_at_end": "[8, inf)", "max_pair_trials": "[1, 1000]", "max_error_px": "(0, 1e9]",
             "max_pose_disagreement_deg": "(0, 180]", "max_reproj_error_px": "(0, 1e9]",
-            "min_track_angle_deg": "[0, 45)", "window_features": ("[0, inf)", "0: all"), "max_history": "[0, inf)",
+            "min_track_angle_deg": "[0, 45)", "window_features": ("[0, 1000000]", "0: all"), "max_history": "[0, 100000]",
             "random_seed": "[0, inf)"})
         if self.min_points_at_end > self.min_points:
             raise ConfigError("initializer.min_points_at_end must be in [8, min_points] "

@@ -94,7 +94,7 @@ class LocalMappingConfig:
 
     def validate(self) -> None:
         check_fields(self, "local_mapping", {
-            "neighbors": "[1, inf)", "min_baseline_ratio": "[0, 100]", "min_parallax_deg": "[0, 45)",
+            "neighbors": "[1, 1000]", "min_baseline_ratio": "[0, 100]", "min_parallax_deg": "[0, 45)",
             "starved_points": "[0, inf)", "starved_parallax_deg": "[0, 45)", "epipolar_band_px": "[0, 1e9]",
             "scale_ratio_factor": "[1, 1000]", "min_found_ratio": "[0, 1]", "min_observers": "[2, inf)",
             "culling_keyframes": "[1, inf)", "fuse_radius_px": "[0, 1e9]"})

@@ -49,7 +49,7 @@ if TYPE_CHECKING:  # pragma: no cover
 VERIFICATION_RANGES = {
     "min_matches": "[3, inf)", "min_inliers": "[3, inf)", "min_inlier_ratio": "[0, 1]", "max_error": "(0, 1e6]",
     "relative_error": "(0, 10]", "scale_range": "(0, 1e6]", "random_seed": ("[-1, inf)", "-1: random"),
-    "max_trials": "[1, inf)"}
+    "max_trials": "[1, 1000000]"}
 """Ranges of the :class:`LoopVerificationConfig` fields of ``verification`` and ``merge_verification`` (beyond
 what its own ``__post_init__`` checks): finite, and bounded where a value would make no sense."""
 
@@ -125,8 +125,8 @@ class LoopClosingConfig:
 
     def validate(self) -> None:
         check_fields(self, "loop_closing", {
-            **{name: "[1, inf)" for name in ("query_candidates", "max_verifications", "loop_group", "min_inliers",
-                                             "max_postings")},
+            **{name: "[1, inf)" for name in ("loop_group", "min_inliers", "max_postings")},
+            "query_candidates": "[1, 1000]", "max_verifications": "[1, 1000]",
             **{name: "[0, inf)" for name in ("min_consistency", "recent_keyframes", "min_keyframes",
                                              "merge_min_keyframes", "neighbour_weight", "covisibility_weight",
                                              "group_span", "candidate_neighbours")},

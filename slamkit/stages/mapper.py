@@ -75,7 +75,7 @@ class MapperConfig:
         if self.method not in MAPPER_METHODS:
             raise ConfigError(f"mapper.method must be one of {', '.join(MAPPER_METHODS)} (got {self.method!r})")
         check_fields(self, "mapper", {
-            "neighbors": "[1, inf)", "max_epipolar_error_px": "(0, 1e9]", "min_keyframe_points": "[0, inf)",
+            "neighbors": "[1, 1000]", "max_epipolar_error_px": "(0, 1e9]", "min_keyframe_points": "[0, inf)",
             "min_tri_angle_deg": "[0, 45)", "starved_points": "[0, inf)", "starved_tri_angle_deg": "[0, 45)",
             "compact_dropped": ("[0, inf)", "0: never")})
         if not self.starved_tri_angle_deg <= self.min_tri_angle_deg:

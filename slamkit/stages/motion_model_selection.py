@@ -54,7 +54,7 @@ class MotionModelSelectionConfig:
     def validate(self) -> "MotionModelSelectionConfig":
         check_fields(self, "motion_model", {"sigma_px": "(0, 100]", "min_matches": "[5, inf)",
                                             "min_rotation_only_deg": "[0, 180]",
-                                            "max_error_px": "(0, 1e9]", "ransac_iterations": "[1, inf)",
+                                            "max_error_px": "(0, 1e9]", "ransac_iterations": ("[1, 10000]", "scored at once: iterations x matches values in memory"),
                                             "random_seed": "[0, inf)"})
         return self
 

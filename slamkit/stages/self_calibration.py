@@ -108,10 +108,10 @@ class SelfCalibrationConfig:
 
     def validate(self) -> None:
         check_fields(self, "self_calibration", {
-            "window_frames": ("[2, 1000]", "the window's frames are kept in memory"), "max_pairs": "[1, inf)",
+            "window_frames": ("[2, 1000]", "the window's frames are kept in memory"), "max_pairs": "[1, 10000]",
             "min_flow": "(0, 1)", "max_homography_ratio": "(0, 1]", "min_fov_deg": "[1, 170]",
             "max_fov_deg": "[1, 170]", "fallback_fov_deg": ("[0, 170]", "0 or 1 to 170 degrees"),
-            "weak_uncertainty": "(0, 10]", "min_refine_keyframes": "[3, inf)", "refine_keyframes": "[0, inf)",
+            "weak_uncertainty": "(0, 10]", "min_refine_keyframes": "[3, inf)", "refine_keyframes": "[0, 10000]",
             "max_radial": "(0, 10]", "max_final_change": "(0, 100]", "first_radial": "[0, 1]"})
         if not self.min_fov_deg < self.max_fov_deg:
             raise ConfigError("self_calibration needs 1 <= min_fov_deg < max_fov_deg <= 170 "

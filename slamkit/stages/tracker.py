@@ -92,7 +92,7 @@ class TrackerConfig:
             "max_error_px": "(0, 1e9]", "min_inliers": "[4, inf)", "search_radius_px": "(0, 1e9]",
             "narrow_search_radius_px": "(0, 1e9]", "refine_radius_px": "(0, 1e9]",
             "prediction_min_inlier_ratio": ("(0, 100]", "> 1 turns the motion-model pose off"),
-            "local_map_rounds": "[1, inf)", "local_keyframes": "[0, inf)", "recheck_inlier_ratio": "[0, 1]",
+            "local_map_rounds": "[1, 100]", "local_keyframes": "[0, 10000]", "recheck_inlier_ratio": "[0, 1]",
             "random_seed": "[0, inf)"})
         if self.pose_optimizer not in POSE_OPTIMIZERS:
             raise ConfigError(f"tracker.pose_optimizer must be one of {', '.join(POSE_OPTIMIZERS)} "

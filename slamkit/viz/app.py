@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import SlamConfig
-from ..errors import SlamkitError
+from ..errors import OutputError, SlamkitError
 from ..exporter import export
 from ..pipeline import Slam, StepResult
 from ..run_camera import open_for_config
@@ -406,8 +406,12 @@ class SlamApp(AppWidgets):
                      "Step, Run or Reset return to the live map")
 
     def export_html(self, path: str | Path | None = None) -> Path:
-        """The 3D view as one standalone HTML file (default: ``<output folder>/map.html``)."""
+        """The 3D view as one standalone HTML file (default: ``<output folder>/map.html``). An existing file is
+        replaced only when it is a map slamkit wrote (OutputError otherwise: the user's file is kept)."""
         path = Path(path or Path(self.w_out.value) / "map.html")
+        if (path.exists() or path.is_symlink()) and not _is_slamkit_map(path):
+            raise OutputError(f"{path}: exists and is not a map slamkit wrote, so it is kept; nothing was written — "
+                              "give another file name")
         n = self._summary()
         run = self._showing_run if self._showing_run is not None else self.source_spec
         caption = (f"{run}: {n['frames']} frames, {n['keyframes']} keyframes, {n['points']} points; "
@@ -601,3 +605,14 @@ class SlamApp(AppWidgets):
 
 
 __all__ = ["SlamApp", "DEFAULT_SOURCE"]
+
+
+def _is_slamkit_map(path: Path) -> bool:
+    """``path`` is a regular file holding the title of a map slamkit exported ("slamkit map")."""
+    try:
+        if path.is_symlink() or not path.is_file():
+            return False
+        with open(path, "rb") as f:
+            return b"slamkit map" in f.read(1 << 20)
+    except OSError:
+        return False
