@@ -1,0 +1,141 @@
+"""Local bundle adjustment's problem read from the map as arrays, and its solution written back
+(``ba.engine = "compiled"``: :func:`slamkit.kernels.local_ba.local_bundle_adjustment` between the two).
+
+The problem is COLMAP's local BA as :class:`~slamkit.stages.ba.BundleAdjuster` gives it to Ceres: the window's
+keyframes variable, every observation in them; the window's points variable unless their track is longer than
+``max_track_length`` (then held, and only their observations in the window enter); the observations of the
+variable points in every other keyframe, whose poses are held (ORB-SLAM's fixed keyframes). When the window is
+the whole map, COLMAP's TWO_CAMS_FROM_WORLD gauge: the lowest image id held, and of the next one the
+translation coordinate along which the two are farthest apart (``gauge``).
+
+Reading is batched where the map keeps arrays: each window keyframe's point ids (:meth:`SlamMap.point3D_ids`,
+cached), its keypoints (``Keyframe.keypoints``, undistorted pixels) and their scales
+(:func:`~slamkit.map.keypoint_scales`); each point's position and track are read once from pycolmap (it has
+no batch read of them). Writing back sets the window's poses and the variable points' positions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from .map import CAMERA_ID, SlamMap, keypoint_scales
+
+
+@dataclass(frozen=True, eq=False)
+class LocalProblem:
+    """A local BA problem in arrays.
+
+    image_ids: (K,) keyframe ids, the window's first (variable unless ``pose_fixed``), then the held keyframes;
+    cam_from_world: (K, 3, 4); pose_fixed: (K,) bool; point3D_ids: (P,) int64 sorted; points: (P, 3) world;
+    point_fixed: (P,) bool (long tracks); obs_pose, obs_point: (N,) int64 indices; obs_point2D: (N,) int64 the
+    keypoint's index in its keyframe; obs_xy: (N, 2) undistorted pixels; obs_scale: (N,) the keypoint's scale
+    (sigma = 1.2^octave for ORB); camera: (4,) fx, fy, cx, cy; gauge: (pose index, axis) or None."""
+
+    image_ids: np.ndarray
+    cam_from_world: np.ndarray
+    pose_fixed: np.ndarray
+    point3D_ids: np.ndarray
+    points: np.ndarray
+    point_fixed: np.ndarray
+    obs_pose: np.ndarray
+    obs_point: np.ndarray
+    obs_point2D: np.ndarray
+    obs_xy: np.ndarray
+    obs_scale: np.ndarray
+    camera: np.ndarray
+    gauge: tuple[int, int] | None
+
+
+def compiled_camera(slam_map: SlamMap) -> np.ndarray | None:
+    """(fx, fy, cx, cy) of the map's camera when it is PINHOLE (the compiled BA's model), else None."""
+    cam = slam_map.reconstruction.camera(CAMERA_ID)
+    if cam.model.name != "PINHOLE":
+        return None
+    return np.array(cam.params, np.float64)
+
+
+def local_problem(slam_map: SlamMap, window: list[int], max_track_length: int) -> LocalProblem:
+    """The local BA problem of ``window`` (keyframe ids, the new keyframe first); see the module docstring.
+    ``max_track_length`` <= 0: every point variable. The map camera must be PINHOLE (:func:`compiled_camera`)."""
+    rec = slam_map.reconstruction
+    camera = compiled_camera(slam_map)
+    if camera is None:
+        raise ValueError("the compiled local BA needs the map's PINHOLE camera")
+    window = [int(i) for i in window]
+    in_window = set(window)
+    ids = [slam_map.point3D_ids(i) for i in window]
+    pids = np.unique(np.concatenate(ids)) if ids else np.empty(0, np.int64)
+    pids = pids[pids >= 0]
+    P = len(pids)
+    xyz = np.empty((P, 3))
+    fixed = np.zeros(P, bool)
+    other_img, other_p2, other_row = [], [], []
+    point3D = rec.point3D
+    for r, p in enumerate(pids.tolist()):  # each point read once: position and track
+        pt = point3D(p)
+        xyz[r] = pt.xyz
+        elements = pt.track.elements
+        if 0 < max_track_length < len(elements):
+            fixed[r] = True
+            continue
+        for el in elements:
+            i = el.image_id
+            if i not in in_window:
+                other_img.append(i)
+                other_p2.append(el.point2D_idx)
+                other_row.append(r)
+    others = sorted(set(other_img) & set(slam_map.keyframes))
+    image_ids = window + others
+    pose_index = {i: k for k, i in enumerate(image_ids)}
+    obs_pose, obs_point, obs_p2, obs_xy, obs_scale = [], [], [], [], []
+    for k, (i, pid) in enumerate(zip(window, ids)):
+        idx = np.flatnonzero(pid >= 0)
+        kf = slam_map.keyframes[i]
+        obs_pose.append(np.full(len(idx), k, np.int64))
+        obs_point.append(np.searchsorted(pids, pid[idx]))
+        obs_p2.append(idx)
+        obs_xy.append(np.asarray(kf.keypoints, np.float64)[idx])
+        obs_scale.append(keypoint_scales(kf.features)[idx])
+    if other_img:
+        img, p2, row = np.array(other_img), np.array(other_p2, np.int64), np.array(other_row, np.int64)
+        for i in others:
+            sel = img == i
+            kf = slam_map.keyframes[i]
+            obs_pose.append(np.full(int(sel.sum()), pose_index[i], np.int64))
+            obs_point.append(row[sel])
+            obs_p2.append(p2[sel])
+            obs_xy.append(np.asarray(kf.keypoints, np.float64)[p2[sel]])
+            obs_scale.append(keypoint_scales(kf.features)[p2[sel]])
+    cat = lambda parts, dtype, shape: np.concatenate(parts).astype(dtype) if parts else np.empty(shape, dtype)  # noqa: E731
+    T = np.empty((len(image_ids), 3, 4))
+    frame = rec.frame
+    for k, i in enumerate(image_ids):
+        T[k] = frame(i).rig_from_world.matrix()
+    pose_fixed = np.arange(len(image_ids)) >= len(window)
+    gauge = None
+    if len(window) >= slam_map.num_keyframes and len(window) >= 2:  # nothing outside the window holds it
+        first, second = sorted(range(len(window)), key=lambda k: window[k])[:2]
+        pose_fixed[first] = True
+        R1, t1, R2, t2 = T[first, :, :3], T[first, :, 3], T[second, :, :3], T[second, :, 3]
+        baseline = t2 - R2 @ R1.T @ t1  # cam2_from_cam1's translation
+        gauge = (second, int(np.argmax(np.abs(baseline))))
+    return LocalProblem(np.array(image_ids, np.int64), T, pose_fixed, pids, xyz, fixed,
+                        cat(obs_pose, np.int64, (0,)), cat(obs_point, np.int64, (0,)), cat(obs_p2, np.int64, (0,)),
+                        cat(obs_xy, np.float64, (0, 2)), cat(obs_scale, np.float64, (0,)), camera, gauge)
+
+
+def write_back(slam_map: SlamMap, problem: LocalProblem, cam_from_world: np.ndarray, points: np.ndarray) -> None:
+    """Set the problem's variable poses (``cam_from_world`` (K, 3|4, 4)) and variable points (``points`` (P, 3))
+    in the map's reconstruction."""
+    rec = slam_map.reconstruction
+    for k in np.flatnonzero(~problem.pose_fixed).tolist():
+        T = cam_from_world[k]
+        rec.frame(int(problem.image_ids[k])).rig_from_world = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.ascontiguousarray(T[:3, :3])), np.ascontiguousarray(T[:3, 3]))
+    point3D = rec.point3D
+    var = np.flatnonzero(~problem.point_fixed)
+    for p, X in zip(problem.point3D_ids[var].tolist(), points[var]):
+        point3D(p).xyz = X
