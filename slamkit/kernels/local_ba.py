@@ -287,15 +287,17 @@ def _solve_step(U, bx, V, by, Wb, obs_pose, active, pose_var, var_mask, pt_ptr, 
                     Y[a, b] = Wb[i, a, 0] * Vinv[pv, 0, b] + Wb[i, a, 1] * Vinv[pv, 1, b] + Wb[i, a, 2] * Vinv[pv, 2, b]
             for a in range(6):  # rhs_k += W V^-1 by (from -bx + W V^-1 by)
                 rhs[6 * ka + a] += Y[a, 0] * by[pv, 0] + Y[a, 1] * by[pv, 1] + Y[a, 2] * by[pv, 2]
-            for ib in range(pt_ptr[pv], pt_ptr[pv + 1]):
+            for ib in range(ia, pt_ptr[pv + 1]):  # the pairs once: S[kb, ka] = S[ka, kb]^T
                 j = pt_obs[ib]
                 kb = pose_var[obs_pose[j]]
                 if kb < 0 or not active[j]:
                     continue
                 for a in range(6):
                     for b in range(6):
-                        S[6 * ka + a, 6 * kb + b] -= (Y[a, 0] * Wb[j, b, 0] + Y[a, 1] * Wb[j, b, 1]
-                                                      + Y[a, 2] * Wb[j, b, 2])
+                        v = Y[a, 0] * Wb[j, b, 0] + Y[a, 1] * Wb[j, b, 1] + Y[a, 2] * Wb[j, b, 2]
+                        S[6 * ka + a, 6 * kb + b] -= v
+                        if kb != ka or ib != ia:
+                            S[6 * kb + b, 6 * ka + a] -= v
     for c in range(m):  # held components: identity rows, zero steps
         if var_mask[c] == 0.0:
             for d in range(m):
