@@ -8,10 +8,11 @@ variable points in every other keyframe, whose poses are held (ORB-SLAM's fixed 
 the whole map, COLMAP's TWO_CAMS_FROM_WORLD gauge: the lowest image id held, and of the next one the
 translation coordinate along which the two are farthest apart (``gauge``).
 
-Reading is batched where the map keeps arrays: each window keyframe's point ids (:meth:`SlamMap.point3D_ids`,
-cached), its keypoints (``Keyframe.keypoints``, undistorted pixels) and their scales
-(:func:`~slamkit.map.keypoint_scales`); each point's position and track are read once from pycolmap (it has
-no batch read of them). Writing back sets the window's poses and the variable points' positions.
+Reading is batched where the map keeps arrays: every keyframe's point ids (:meth:`SlamMap.point3D_ids`,
+cached; the tracks of the window's points are read from them, not from pycolmap's ``Track`` objects, which
+cost a few microseconds an element), the keypoints (``Keyframe.keypoints``, undistorted pixels) and their
+scales (:func:`~slamkit.map.keypoint_scales`); each point's position is read once from pycolmap (it has no
+batch read). Writing back sets the window's poses and the variable points' positions, one pycolmap call each.
 """
 
 from __future__ import annotations
@@ -70,45 +71,43 @@ def local_problem(slam_map: SlamMap, window: list[int], max_track_length: int) -
     pids = np.unique(np.concatenate(ids)) if ids else np.empty(0, np.int64)
     pids = pids[pids >= 0]
     P = len(pids)
-    xyz = np.empty((P, 3))
-    fixed = np.zeros(P, bool)
-    other_img, other_p2, other_row = [], [], []
-    point3D = rec.point3D
-    for r, p in enumerate(pids.tolist()):  # each point read once: position and track
-        pt = point3D(p)
-        xyz[r] = pt.xyz
-        elements = pt.track.elements
-        if 0 < max_track_length < len(elements):
-            fixed[r] = True
-            continue
-        for el in elements:
-            i = el.image_id
-            if i not in in_window:
-                other_img.append(i)
-                other_p2.append(el.point2D_idx)
-                other_row.append(r)
-    others = sorted(set(other_img) & set(slam_map.keyframes))
-    image_ids = window + others
-    pose_index = {i: k for k, i in enumerate(image_ids)}
-    obs_pose, obs_point, obs_p2, obs_xy, obs_scale = [], [], [], [], []
-    for k, (i, pid) in enumerate(zip(window, ids)):
+    # Every other keyframe's observations of the window's points, from the cached point id arrays (one
+    # vectorized lookup per keyframe, no pycolmap track read): they give the track lengths and the held
+    # keyframes' observations.
+    obs_pose, obs_point, obs_p2 = [], [], []
+    for k, pid in enumerate(ids):
         idx = np.flatnonzero(pid >= 0)
-        kf = slam_map.keyframes[i]
         obs_pose.append(np.full(len(idx), k, np.int64))
         obs_point.append(np.searchsorted(pids, pid[idx]))
         obs_p2.append(idx)
-        obs_xy.append(np.asarray(kf.keypoints, np.float64)[idx])
-        obs_scale.append(keypoint_scales(kf.features)[idx])
-    if other_img:
-        img, p2, row = np.array(other_img), np.array(other_p2, np.int64), np.array(other_row, np.int64)
-        for i in others:
-            sel = img == i
-            kf = slam_map.keyframes[i]
-            obs_pose.append(np.full(int(sel.sum()), pose_index[i], np.int64))
-            obs_point.append(row[sel])
-            obs_p2.append(p2[sel])
-            obs_xy.append(np.asarray(kf.keypoints, np.float64)[p2[sel]])
-            obs_scale.append(keypoint_scales(kf.features)[p2[sel]])
+    others, other_rows, other_p2 = [], [], []
+    for i in slam_map.keyframes:
+        if i in in_window or not P:
+            continue
+        pid = slam_map.point3D_ids(i)
+        rows = np.minimum(np.searchsorted(pids, pid), P - 1)
+        hit = np.flatnonzero(pids[rows] == pid)
+        if len(hit):
+            others.append(i)
+            other_rows.append(rows[hit])
+            other_p2.append(hit)
+    length = np.bincount(np.concatenate(obs_point + other_rows), minlength=P) if P else np.zeros(0, np.int64)
+    fixed = (length > max_track_length) if max_track_length > 0 else np.zeros(P, bool)
+    point3D = rec.point3D
+    xyz = np.concatenate([point3D(p).xyz for p in pids.tolist()]).reshape(-1, 3) if P else np.empty((0, 3))
+    image_ids = list(window)
+    for i, rows, p2 in zip(others, other_rows, other_p2):
+        var = ~fixed[rows]  # a held point enters through its observations in the window only
+        if var.any():
+            obs_pose.append(np.full(int(var.sum()), len(image_ids), np.int64))
+            obs_point.append(rows[var])
+            obs_p2.append(p2[var])
+            image_ids.append(i)
+    obs_xy, obs_scale = [], []
+    for k, i in enumerate(image_ids):
+        kf = slam_map.keyframes[i]
+        obs_xy.append(np.asarray(kf.keypoints, np.float64)[obs_p2[k]])
+        obs_scale.append(keypoint_scales(kf.features)[obs_p2[k]])
     cat = lambda parts, dtype, shape: np.concatenate(parts).astype(dtype) if parts else np.empty(shape, dtype)  # noqa: E731
     T = np.empty((len(image_ids), 3, 4))
     frame = rec.frame
