@@ -252,3 +252,27 @@ def test_degenerate_input_is_a_result_with_a_reason():
     assert mask[~ahead].all() and not ahead[np.flatnonzero((pb["op"] == 0) & (pb["oq"] == behind))[0]]
     with pytest.raises(ValueError, match="obs_pose"):
         local_bundle_adjustment(pb["T0"], pb["X0"], pb["op"] + 100, pb["oq"], pb["xy"], CAM)
+
+
+def test_behind_the_camera_zero_is_colmaps_cost():
+    """``behind_camera="zero"``: an observation whose point is behind its camera adds 0 to the cost and is still
+    in the problem (COLMAP 4's ReprojErrorCost returns a zero residual there: checked here on pycolmap's own
+    cost function), so the initial cost is that of the other observations."""
+    pb = problem(6, num_points=40)
+    X0 = pb["X0"].copy()
+    T = pb["T0"][0]
+    X0[3] = T[:3, :3].T @ (np.array([0.1, 0.0, -2.0]) - T[:3, 3])  # 2 m behind keyframe 0
+    cost = pycolmap._core.cost_functions.ReprojErrorCost(pycolmap.CameraModelId.PINHOLE, np.eye(2), pb["xy"][0])
+    quat_t = np.array(pycolmap.Rigid3d(pycolmap.Rotation3d(T[:3, :3]), T[:3, 3].copy()).params)
+    assert np.array_equal(np.asarray(cost.evaluate(X0[3], quat_t, CAM.copy())[0]).ravel(), [0.0, 0.0])
+    ahead = np.einsum("nij,nj->ni", pb["T0"][pb["op"], :3, :3], X0[pb["oq"]])[:, 2] + pb["T0"][pb["op"], 2, 3] > 0
+    zero = local_bundle_adjustment(pb["T0"], X0, pb["op"], pb["oq"], pb["xy"], CAM, pose_fixed=pb["fixed"],
+                                   loss="soft_l1", loss_scale=1.0, behind_camera="zero", max_iterations=0,
+                                   min_depth=np.finfo(float).eps)
+    assert zero.success and zero.num_residuals == len(pb["op"]) and "residual 0" in zero.reason
+    kept = local_bundle_adjustment(pb["T0"], X0, pb["op"], pb["oq"], pb["xy"], CAM, pose_fixed=pb["fixed"],
+                                   loss="soft_l1", loss_scale=1.0, max_iterations=0, obs_mask=ahead)
+    assert zero.initial_cost == pytest.approx(kept.initial_cost, rel=1e-12) and (~ahead).sum() >= 1
+    solved = local_bundle_adjustment(pb["T0"], X0, pb["op"], pb["oq"], pb["xy"], CAM, pose_fixed=pb["fixed"],
+                                     loss="soft_l1", loss_scale=1.0, behind_camera="zero")
+    assert solved.success and solved.final_cost < solved.initial_cost

@@ -30,7 +30,10 @@ lower the cost by 1e-3 of the model's prediction. Every linear solve counts as a
 vanishes; NO_CONVERGENCE after ``max_iterations``; ABORTED when ``abort[0]`` is set (checked before each
 iteration: another thread may set it; the result is the last accepted state); FAILURE for input that cannot
 be solved (the result says why). A step that moves a used observation's point to depth <= ``min_depth``
-is refused.
+is refused (``behind_camera`` "refuse", ORB-SLAM's test treats such a point as an outlier), or that
+observation's residual is 0 (``behind_camera`` "zero": COLMAP 4's ``ReprojErrorCost`` returns a zero residual
+and Jacobian for a point behind the camera, so Ceres may move points there; the stage uses this to solve
+COLMAP's problem).
 
 The solver runs in one numba function that releases the GIL (``nogil``), on float64 arrays, with no state
 between calls: a worker thread can run it beside tracking and its result never depends on other threads.
@@ -117,8 +120,9 @@ def _to_camera(R, t, X, k, p):
 
 
 @njit(cache=True, nogil=True)
-def _cost(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth):
-    """1/2 sum rho(s) over the active observations; inf when one of them is at depth <= min_depth."""
+def _cost(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth, zero_behind=False):
+    """1/2 sum rho(s) over the active observations; inf when one of them is at depth <= min_depth (with
+    zero_behind: that observation adds 0, COLMAP's reprojection cost)."""
     fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
     total = 0.0
     for i in range(obs_pose.shape[0]):
@@ -126,6 +130,8 @@ def _cost(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth)
             continue
         x, y, z = _to_camera(R, t, X, obs_pose[i], obs_point[i])
         if not z > min_depth:
+            if zero_behind:
+                continue
             return np.inf
         ru = fx * x / z + cx - xy[i, 0]
         rv = fy * y / z + cy - xy[i, 1]
@@ -161,10 +167,11 @@ def _jacobians(R, t, X, k, p, xy_i, cam, Jp, Jx, r):
 
 @njit(cache=True, nogil=True)
 def _linearize(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, pose_var, point_var, dof_mask,
-               U, bx, V, by, Wb):
+               U, bx, V, by, Wb, min_depth=0.0):
     """Normal equations' blocks: U (Kv, 6, 6), bx (Kv, 6) of the variable poses, V (Pv, 3, 3), by (Pv, 3) of the
     variable points, Wb (N, 6, 3) of each observation joining both (zero otherwise); bx and by are the cost's
-    gradient. Pose components held by dof_mask (K, 6) (0: held) get zero Jacobian columns."""
+    gradient. Pose components held by dof_mask (K, 6) (0: held) get zero Jacobian columns; an observation at
+    depth <= min_depth adds nothing (its residual is 0 or the state refused)."""
     U[:] = 0.0
     bx[:] = 0.0
     V[:] = 0.0
@@ -179,6 +186,8 @@ def _linearize(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, pose_
         k, p = obs_pose[i], obs_point[i]
         kv, pv = pose_var[k], point_var[p]
         if kv < 0 and pv < 0:
+            continue
+        if not _to_camera(R, t, X, k, p)[2] > min_depth:
             continue
         _jacobians(R, t, X, k, p, xy[i], cam, Jp, Jx, r)
         om = w[i] * _rho(w[i] * (r[0] * r[0] + r[1] * r[1]), loss, a2)[1]
@@ -354,11 +363,11 @@ def _retract(R, t, X, pose_ids, point_ids, dx, dy, R_out, t_out, X_out):
 @njit(cache=True, nogil=True)
 def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, pose_ids, pose_var, dof_mask,
                      point_ids, point_var, pt_ptr, pt_obs, max_iterations, function_tolerance, parameter_tolerance,
-                     min_depth, abort, info):
+                     min_depth, zero_behind, abort, info):
     """Levenberg-Marquardt on (R (K, 3, 3), t (K, 3), X (P, 3)) in place. info (4,) gets (initial cost, final
     cost, iterations, termination code)."""
     Kv, Pv, N = pose_ids.shape[0], point_ids.shape[0], obs_pose.shape[0]
-    cost = _cost(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth)
+    cost = _cost(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth, zero_behind)
     info[0] = cost
     info[1] = cost
     info[2] = 0
@@ -377,7 +386,7 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
             var_mask[6 * kv + a] = dof_mask[pose_ids[kv], a]
     R_new, t_new, X_new = np.empty_like(R), np.empty_like(t), np.empty_like(X)
     _linearize(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, pose_var, point_var, dof_mask,
-               U, bx, V, by, Wb)
+               U, bx, V, by, Wb, min_depth)
     lam, nu = _INITIAL_LAMBDA, 2.0
     it, term = 0, _NO_CONVERGENCE
     while it < max_iterations:
@@ -420,7 +429,8 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
             term = _CONVERGENCE
             break
         _retract(R, t, X, pose_ids, point_ids, dx, dy, R_new, t_new, X_new)
-        new_cost = _cost(R_new, t_new, X_new, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth)
+        new_cost = _cost(R_new, t_new, X_new, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth,
+                         zero_behind)
         if np.isfinite(new_cost) and abs(cost - new_cost) <= function_tolerance * cost:
             if new_cost < cost:
                 R[:] = R_new
@@ -438,7 +448,7 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
             lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
             nu = 2.0
             _linearize(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, pose_var, point_var, dof_mask,
-                       U, bx, V, by, Wb)
+                       U, bx, V, by, Wb, min_depth)
         else:
             lam *= nu
             nu *= 2.0
@@ -469,7 +479,7 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
                             loss_scale: float = math.sqrt(CHI2_2DOF_95), max_iterations: int = 20,
                             function_tolerance: float = 1e-6, parameter_tolerance: float = 1e-8,
                             min_depth: float = 1e-6, abort: np.ndarray | None = None,
-                            obs_mask: np.ndarray | None = None) -> LocalBAResult:
+                            obs_mask: np.ndarray | None = None, behind_camera: str = "refuse") -> LocalBAResult:
     """Adjust the poses and points (see the module docstring for the cost and the solver).
 
     cam_from_world: (K, 4, 4) or (K, 3, 4) poses; points: (P, 3) world points; obs_pose, obs_point: (N,) int
@@ -480,10 +490,14 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
     loss: "huber", "soft_l1" or "trivial", at ``loss_scale`` on the whitened error; abort: a one-element
     integer array, the solve stops before the next iteration once it is non-zero; obs_mask: (N,) bool, the
     observations in the cost (None: all): the others are only measured (their chi2 at the result), as
-    ORB-SLAM's second pass leaves out the first pass's outliers and then tests every observation again.
+    ORB-SLAM's second pass leaves out the first pass's outliers and then tests every observation again;
+    behind_camera: an observation whose point is at depth <= min_depth, "refuse": left out when it is so at
+    the start, and a step that puts a used one there is refused; "zero": its residual is 0 (COLMAP 4's
+    reprojection cost: it drops out while behind, and may come back), so the optimum is Ceres' on COLMAP's
+    problem.
 
-    Observations with a non-finite pixel, a weight <= 0 or not finite, or a point at depth <= min_depth at the
-    start are left out of the cost (chi2 inf: :func:`outlier_mask` classes them outliers) and counted in
+    Observations with a non-finite pixel, a weight <= 0 or not finite, or ("refuse") a point at depth <=
+    min_depth at the start are left out of the cost (chi2 inf: :func:`outlier_mask` classes them outliers) and counted in
     ``reason``. Non-finite poses, points or camera, or no usable observation, give a result with ``success``
     False and the reason, the input unchanged; arrays of wrong shapes or indices out of range raise
     ValueError. Nothing given is modified."""
@@ -537,7 +551,10 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
         in_front = Xc[:, 2] > min_depth
     else:
         in_front = np.zeros(0, bool)
-    active = usable & in_front
+    if behind_camera not in ("refuse", "zero"):
+        raise ValueError(f"behind_camera must be 'refuse' or 'zero', got {behind_camera!r}")
+    zero_behind = behind_camera == "zero"
+    active = usable & (in_front | zero_behind)
     if obs_mask is not None:
         obs_mask = np.asarray(obs_mask, bool).reshape(-1)
         if obs_mask.shape != (N,):
@@ -547,7 +564,8 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
     if (~usable).any():
         left_out.append(f"{int((~usable).sum())} unusable (pixel or weight not finite, or weight <= 0)")
     if (usable & ~in_front).any():
-        left_out.append(f"{int((usable & ~in_front).sum())} at depth <= {min_depth} (behind the camera)")
+        left_out.append(f"{int((usable & ~in_front).sum())} at depth <= {min_depth} (behind the camera"
+                        + (": residual 0)" if zero_behind else ")"))
     note = ("observations left out: " + ", ".join(left_out)) if left_out else ""
     if not active.any():
         return result(False, f"no usable observation of {N}" + (f" ({note})" if note else ""))
@@ -574,7 +592,7 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
     _local_ba_kernel(R, t, X, obs_pose, obs_point, xy_used, w_used, active, cam, LOSSES[loss],
                      float(loss_scale) ** 2, pose_ids, pose_var, dof_mask, point_ids, point_var, pt_ptr, pt_obs,
                      int(max_iterations), float(function_tolerance), float(parameter_tolerance), float(min_depth),
-                     abort, info)
+                     zero_behind, abort, info)
     _chi2(R, t, X, obs_pose, obs_point, xy_used, w_used, usable, cam, float(min_depth), chi2)
     term = TERMINATIONS[int(info[3])]
     if term == "FAILURE":

@@ -20,6 +20,8 @@ from ..local_ba_problem import compiled_camera, local_problem, write_back
 from ..map import BA_LOSSES as _LOSSES, CAMERA_ID, SlamMap, bundle_adjustment_options, keypoint_scales
 from ..weighted_ba import weighted_adjust
 
+_EPS = float(np.finfo(np.float64).eps)
+"""COLMAP's reprojection cost is 0 for a point at depth below this (its behind-the-camera test)."""
 ENGINES = ("ceres", "compiled")
 """Local BA's solvers: pycolmap's Ceres bundle adjuster, or :mod:`slamkit.kernels.local_ba`."""
 
@@ -249,7 +251,7 @@ class BundleAdjuster:
         res = local_bundle_adjustment(problem.cam_from_world, problem.points, problem.obs_pose, problem.obs_point,
                                       problem.obs_xy, problem.camera, weight, problem.pose_fixed,
                                       problem.point_fixed, problem.gauge, loss, scale, c.local_iterations,
-                                      c.function_tolerance)
+                                      c.function_tolerance, min_depth=_EPS, behind_camera="zero")
         if res.success:
             write_back(slam_map, problem, res.cam_from_world, res.points)
         return res.termination, len(problem.point3D_ids)
