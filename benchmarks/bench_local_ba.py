@@ -20,7 +20,7 @@ per frame from the run's ``stage_ms_per_frame``.
 Usage::
 
     PYTHONPATH=$PWD nice -n 10 .venv/bin/python benchmarks/bench_local_ba.py problems --cases 7scenes/skip5
-    PYTHONPATH=$PWD nice -n 10 .venv/bin/python benchmarks/bench_local_ba.py rows --cases default,7scenes/skip5 --seeds 1
+    PYTHONPATH=$PWD nice -n 10 .venv/bin/python benchmarks/bench_local_ba.py rows --cases default,7scenes/skip5
 
 Output: a Markdown table on stdout and ``benchmarks/results/bench_local_ba_<mode>.csv`` (``--csv PATH``).
 """
@@ -206,7 +206,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("mode", nargs="?", default="problems", choices=("problems", "rows"))
     ap.add_argument("--cases", default="7scenes/skip5", help="comma-separated case names (bench_suite's, or default)")
-    ap.add_argument("--seeds", type=int, default=1)
+    ap.add_argument("--seeds", type=int, default=1, help="seeds per case (default 1)")
+    ap.add_argument("--first-seed", type=int, default=0, help="the first seed (default 0)")
     ap.add_argument("--csv", type=Path, default=None)
     args = ap.parse_args(argv)
     pycolmap.logging.minloglevel = 2
@@ -215,7 +216,7 @@ def main(argv=None) -> int:
           "(the machine is shared: the two engines are interleaved)", file=sys.stderr, flush=True)
     rows: list[dict] = []
     for case in cases:
-        for seed in range(args.seeds):
+        for seed in range(args.first_seed, args.first_seed + args.seeds):
             if args.mode == "problems":
                 rows += measure_problems(case, seed)
             else:

@@ -108,7 +108,8 @@ def local_problem(slam_map: SlamMap, window: list[int], max_track_length: int) -
         kf = slam_map.keyframes[i]
         obs_xy.append(np.asarray(kf.keypoints, np.float64)[obs_p2[k]])
         obs_scale.append(keypoint_scales(kf.features)[obs_p2[k]])
-    cat = lambda parts, dtype, shape: np.concatenate(parts).astype(dtype) if parts else np.empty(shape, dtype)  # noqa: E731
+    def cat(parts, dtype, shape):
+        return np.concatenate(parts).astype(dtype) if parts else np.empty(shape, dtype)
     T = np.empty((len(image_ids), 3, 4))
     frame = rec.frame
     for k, i in enumerate(image_ids):

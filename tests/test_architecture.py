@@ -192,6 +192,7 @@ def test_kernels_import_neither_pycolmap_nor_the_stages():
            for m in kernels}
     bad = {m: t for m, t in bad.items() if t}
     assert not bad, f"kernel modules import slamkit modules outside slamkit/kernels: {bad}"
-    colmap = {m: sorted(n for n in _external_imports(p) if n in ("pycolmap", "pyceres", "cv2")) for m, p in kernels.items()}
+    colmap = {m: sorted(n for n in _external_imports(p) if n in ("pycolmap", "pyceres", "cv2"))
+              for m, p in kernels.items()}
     colmap = {m: n for m, n in colmap.items() if n}
     assert not colmap, f"kernel modules import pycolmap / pyceres / OpenCV: {colmap}"

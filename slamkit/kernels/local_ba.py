@@ -497,8 +497,8 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
     problem.
 
     Observations with a non-finite pixel, a weight <= 0 or not finite, or ("refuse") a point at depth <=
-    min_depth at the start are left out of the cost (chi2 inf: :func:`outlier_mask` classes them outliers) and counted in
-    ``reason``. Non-finite poses, points or camera, or no usable observation, give a result with ``success``
+    min_depth at the start are left out of the cost (chi2 inf: :func:`outlier_mask` classes them outliers) and
+    counted in ``reason``. Non-finite poses, points or camera, or no usable observation, give a result with ``success``
     False and the reason, the input unchanged; arrays of wrong shapes or indices out of range raise
     ValueError. Nothing given is modified."""
     T = np.asarray(cam_from_world, np.float64)
@@ -546,20 +546,15 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
         return result(False, f"loss_scale {loss_scale} is not positive")
     with np.errstate(invalid="ignore"):
         usable = np.isfinite(xy).all(axis=1) & np.isfinite(w) & (w > 0)
-    if N:
-        Xc = np.einsum("nij,nj->ni", R[obs_pose], X[obs_point]) + t[obs_pose]
-        in_front = Xc[:, 2] > min_depth
-    else:
-        in_front = np.zeros(0, bool)
+    in_front = np.einsum("nj,nj->n", R[obs_pose, 2], X[obs_point]) + t[obs_pose, 2] > min_depth
     if behind_camera not in ("refuse", "zero"):
         raise ValueError(f"behind_camera must be 'refuse' or 'zero', got {behind_camera!r}")
     zero_behind = behind_camera == "zero"
     active = usable & (in_front | zero_behind)
     if obs_mask is not None:
-        obs_mask = np.asarray(obs_mask, bool).reshape(-1)
-        if obs_mask.shape != (N,):
-            raise ValueError(f"obs_mask must be ({N},), got {obs_mask.shape}")
-        active &= obs_mask
+        if np.shape(obs_mask) != (N,):
+            raise ValueError(f"obs_mask must be ({N},), got {np.shape(obs_mask)}")
+        active &= np.asarray(obs_mask, bool)
     left_out = []
     if (~usable).any():
         left_out.append(f"{int((~usable).sum())} unusable (pixel or weight not finite, or weight <= 0)")
@@ -576,12 +571,9 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
         if not (0 <= g_pose < K and 0 <= g_axis < 3):
             raise ValueError(f"gauge must be (pose index < {K}, axis 0-2), got {gauge}")
         dof_mask[g_pose, 3 + g_axis] = 0.0
-    pose_ids = np.flatnonzero(~pose_fixed).astype(np.int64)
-    pose_var = np.full(K, -1, np.int64)
-    pose_var[pose_ids] = np.arange(len(pose_ids))
-    point_ids = np.flatnonzero(~point_fixed).astype(np.int64)
-    point_var = np.full(P, -1, np.int64)
-    point_var[point_ids] = np.arange(len(point_ids))
+    pose_ids, point_ids = np.flatnonzero(~pose_fixed).astype(np.int64), np.flatnonzero(~point_fixed).astype(np.int64)
+    pose_var = np.where(pose_fixed, -1, np.cumsum(~pose_fixed) - 1).astype(np.int64)
+    point_var = np.where(point_fixed, -1, np.cumsum(~point_fixed) - 1).astype(np.int64)
     pv = point_var[obs_point]
     with_var = np.flatnonzero(pv >= 0)
     pt_obs = with_var[np.argsort(pv[with_var], kind="stable")].astype(np.int64)
