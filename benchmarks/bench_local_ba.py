@@ -174,11 +174,14 @@ def problems_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def run_row(case, seed: int, engine: str) -> dict:
-    """One whole run of ``case`` with ``ba.engine = engine``: ATE, posed %, keyframes, ba and total ms/frame."""
-    row = {"case": case.name, "seed": seed, "engine": engine}
+def run_row(case, seed: int, engine: str, overrides: dict | None = None) -> dict:
+    """One whole run of ``case`` with ``ba.engine = engine`` (and ``overrides``): ATE, posed %, keyframes, ba and
+    total ms/frame."""
+    settings = "".join(f" {k}={v}" for k, v in (overrides or {}).items())
+    row = {"case": case.name, "seed": seed, "engine": engine + settings}
     t0 = time.perf_counter()
-    config = SlamConfig().with_overrides(seed=seed, frame_skip=case.skip, **{**case.config, "ba.engine": engine})
+    config = SlamConfig().with_overrides(seed=seed, frame_skip=case.skip,
+                                         **{**case.config, **(overrides or {}), "ba.engine": engine})
     source = open_source(case.source_spec(seed), **case.kw)
     slam = Slam(source, config)
     slam.run()
@@ -209,6 +212,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=1, help="seeds per case (default 1)")
     ap.add_argument("--first-seed", type=int, default=0, help="the first seed (default 0)")
     ap.add_argument("--csv", type=Path, default=None)
+    ap.add_argument("--engines", default="ceres,compiled", help="rows: the engines to run (default ceres,compiled)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="rows: a config override for every run (a control: e.g. ba.function_tolerance=1.1e-6)")
     args = ap.parse_args(argv)
     pycolmap.logging.minloglevel = 2
     cases = _cases(args.cases)
@@ -220,8 +226,10 @@ def main(argv=None) -> int:
             if args.mode == "problems":
                 rows += measure_problems(case, seed)
             else:
-                for engine in (("ceres", "compiled") if seed % 2 == 0 else ("compiled", "ceres")):
-                    rows.append(run_row(case, seed, engine))
+                engines = args.engines.split(",")
+                overrides = dict(bench_suite._override(kv) for kv in args.set)
+                for engine in (engines if seed % 2 == 0 else engines[::-1]):
+                    rows.append(run_row(case, seed, engine, overrides))
                     print(rows_table(rows[-1:]).splitlines()[-1], file=sys.stderr, flush=True)
     table = problems_table(rows) if args.mode == "problems" else rows_table(rows)
     path = args.csv or RESULTS / f"bench_local_ba_{args.mode}.csv"
