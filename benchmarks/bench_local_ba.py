@@ -112,7 +112,9 @@ def measure_problems(case, seed: int = 0) -> list[dict]:
             res = local_bundle_adjustment(problem.cam_from_world, problem.points, problem.obs_pose,
                                           problem.obs_point, problem.obs_xy, problem.camera, None,
                                           problem.pose_fixed, problem.point_fixed, problem.gauge, c.loss, 1.0,
-                                          c.local_iterations, c.function_tolerance, min_depth=ba_stage._EPS,
+                                          c.local_iterations, c.function_tolerance,
+                                          ba_stage._COLMAP_SOLVER["parameter_tolerance"],
+                                          ba_stage._COLMAP_SOLVER["gradient_tolerance"], min_depth=ba_stage._EPS,
                                           behind_camera="zero")
             t2 = time.perf_counter()
             if res.success:

@@ -26,14 +26,14 @@ Levenberg-Marquardt: lambda diag(J^T J) (diagonal clamped to [1e-6, 1e32]), lamb
 accepted step lambda *= max(1/3, 1 - (2 rho - 1)^3), on a refused one lambda *= nu, nu *= 2; a step must
 lower the cost by 1e-3 of the model's prediction. Every linear solve counts as an iteration (Ceres'
 ``max_num_iterations``). Termination as Ceres': CONVERGENCE when an iteration changes the cost by at most
-``function_tolerance`` times the cost, the step is below ``parameter_tolerance`` (relative), or the gradient
-vanishes; NO_CONVERGENCE after ``max_iterations``; ABORTED when ``abort[0]`` is set (checked before each
-iteration: another thread may set it; the result is the last accepted state); FAILURE for input that cannot
-be solved (the result says why). A step that moves a used observation's point to depth <= ``min_depth``
-is refused (``behind_camera`` "refuse", ORB-SLAM's test treats such a point as an outlier), or that
-observation's residual is 0 (``behind_camera`` "zero": COLMAP 4's ``ReprojErrorCost`` returns a zero residual
-and Jacobian for a point behind the camera, so Ceres may move points there; the stage uses this to solve
-COLMAP's problem).
+``function_tolerance`` times the cost, the step is below ``parameter_tolerance`` (relative), or no gradient
+entry exceeds ``gradient_tolerance``; NO_CONVERGENCE after ``max_iterations``; ABORTED when ``abort[0]`` is set
+(checked before each iteration: another thread may set it; the result is the last accepted state); FAILURE for
+input that cannot be solved (the result says why). A step that moves a used observation's point to depth <=
+``min_depth`` is refused (``behind_camera`` "refuse", ORB-SLAM's test treats such a point as an outlier), or
+that observation's residual is 0 (``behind_camera`` "zero": COLMAP 4's ``ReprojErrorCost`` returns a zero
+residual and Jacobian for a point behind the camera, so Ceres may move points there; the stage uses this to
+solve COLMAP's problem).
 
 The solver runs in one numba function that releases the GIL (``nogil``), on float64 arrays, with no state
 between calls: a worker thread can run it beside tracking and its result never depends on other threads.
@@ -60,8 +60,6 @@ _INITIAL_LAMBDA = 1e-4
 """1 / Ceres' initial trust region radius (1e4)."""
 _MIN_RELATIVE_DECREASE = 1e-3
 """A step is accepted when it lowers the cost by at least this fraction of the model's prediction (Ceres)."""
-_GRADIENT_TOLERANCE = 1e-10
-"""Converged when no gradient entry exceeds this (Ceres' default gradient_tolerance)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -363,7 +361,7 @@ def _retract(R, t, X, pose_ids, point_ids, dx, dy, R_out, t_out, X_out):
 @njit(cache=True, nogil=True)
 def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2, pose_ids, pose_var, dof_mask,
                      point_ids, point_var, pt_ptr, pt_obs, max_iterations, function_tolerance, parameter_tolerance,
-                     min_depth, zero_behind, abort, info):
+                     gradient_tolerance, min_depth, zero_behind, abort, info):
     """Levenberg-Marquardt on (R (K, 3, 3), t (K, 3), X (P, 3)) in place. info (4,) gets (initial cost, final
     cost, iterations, termination code)."""
     Kv, Pv, N = pose_ids.shape[0], point_ids.shape[0], obs_pose.shape[0]
@@ -400,7 +398,7 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
         for pv in range(Pv):
             for a in range(3):
                 gmax = max(gmax, abs(by[pv, a]))
-        if gmax <= _GRADIENT_TOLERANCE:
+        if gmax <= gradient_tolerance:
             term = _CONVERGENCE
             break
         it += 1
@@ -478,6 +476,7 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
                             gauge: tuple[int, int] | None = None, loss: str = "huber",
                             loss_scale: float = math.sqrt(CHI2_2DOF_95), max_iterations: int = 20,
                             function_tolerance: float = 1e-6, parameter_tolerance: float = 1e-8,
+                            gradient_tolerance: float = 1e-10,
                             min_depth: float = 1e-6, abort: np.ndarray | None = None,
                             obs_mask: np.ndarray | None = None, behind_camera: str = "refuse") -> LocalBAResult:
     """Adjust the poses and points (see the module docstring for the cost and the solver).
@@ -583,8 +582,8 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
     xy_used = np.where(usable[:, None], xy, 0.0)
     _local_ba_kernel(R, t, X, obs_pose, obs_point, xy_used, w_used, active, cam, LOSSES[loss],
                      float(loss_scale) ** 2, pose_ids, pose_var, dof_mask, point_ids, point_var, pt_ptr, pt_obs,
-                     int(max_iterations), float(function_tolerance), float(parameter_tolerance), float(min_depth),
-                     zero_behind, abort, info)
+                     int(max_iterations), float(function_tolerance), float(parameter_tolerance),
+                     float(gradient_tolerance), float(min_depth), zero_behind, abort, info)
     _chi2(R, t, X, obs_pose, obs_point, xy_used, w_used, usable, cam, float(min_depth), chi2)
     term = TERMINATIONS[int(info[3])]
     if term == "FAILURE":

@@ -22,6 +22,8 @@ from ..weighted_ba import weighted_adjust
 
 _EPS = float(np.finfo(np.float64).eps)
 """COLMAP's reprojection cost is 0 for a point at depth below this (its behind-the-camera test)."""
+_COLMAP_SOLVER = {"parameter_tolerance": 0.0, "gradient_tolerance": 1e-4}
+"""COLMAP's BundleAdjustmentOptions' Ceres tolerances (pycolmap 4.2), which the compiled engine stops by too."""
 ENGINES = ("ceres", "compiled")
 """Local BA's solvers: pycolmap's Ceres bundle adjuster, or :mod:`slamkit.kernels.local_ba`."""
 
@@ -251,7 +253,8 @@ class BundleAdjuster:
         res = local_bundle_adjustment(problem.cam_from_world, problem.points, problem.obs_pose, problem.obs_point,
                                       problem.obs_xy, problem.camera, weight, problem.pose_fixed,
                                       problem.point_fixed, problem.gauge, loss, scale, c.local_iterations,
-                                      c.function_tolerance, min_depth=_EPS, behind_camera="zero")
+                                      c.function_tolerance, _COLMAP_SOLVER["parameter_tolerance"],
+                                      _COLMAP_SOLVER["gradient_tolerance"], min_depth=_EPS, behind_camera="zero")
         if res.success:
             write_back(slam_map, problem, res.cam_from_world, res.points)
         return res.termination, len(problem.point3D_ids)
