@@ -6,7 +6,7 @@ keyframes variable, every observation in them; the window's points variable unle
 ``max_track_length`` (then held, and only their observations in the window enter); the observations of the
 variable points in every other keyframe, whose poses are held (ORB-SLAM's fixed keyframes). When the window is
 the whole map, COLMAP's TWO_CAMS_FROM_WORLD gauge: the lowest image id held, and of the next one the
-translation coordinate along which the two are farthest apart (``gauge``).
+translation coordinate along the largest component of their baseline in the first camera (``gauge``).
 
 Reading is batched where the map keeps arrays: every keyframe's point ids (:meth:`SlamMap.point3D_ids`,
 cached; the tracks of the window's points are read from them, not from pycolmap's ``Track`` objects, which
@@ -117,11 +117,17 @@ def local_problem(slam_map: SlamMap, window: list[int], max_track_length: int) -
     pose_fixed = np.arange(len(image_ids)) >= len(window)
     gauge = None
     if len(window) >= slam_map.num_keyframes and len(window) >= 2:  # nothing outside the window holds it
-        first, second = sorted(range(len(window)), key=lambda k: window[k])[:2]
-        pose_fixed[first] = True
-        R1, t1, R2, t2 = T[first, :, :3], T[first, :, 3], T[second, :, :3], T[second, :, 3]
-        baseline = t2 - R2 @ R1.T @ t1  # cam2_from_cam1's translation
-        gauge = (second, int(np.argmax(np.abs(baseline))))
+        # COLMAP's FixGaugeWithTwoCamsFromWorld: the lowest image id held; of the next one whose baseline to it
+        # exceeds 1e-9, the translation coordinate along the largest component of cam1_from_cam2's translation
+        order = sorted(range(len(window)), key=lambda k: window[k])
+        first = order[0]
+        R1, t1 = T[first, :, :3], T[first, :, 3]
+        for second in order[1:]:
+            baseline = t1 - R1 @ T[second, :, :3].T @ T[second, :, 3]
+            if np.abs(baseline).max() > 1e-9:
+                pose_fixed[first] = True
+                gauge = (second, int(np.argmax(np.abs(baseline))))
+                break
     return LocalProblem(np.array(image_ids, np.int64), T, pose_fixed, pids, xyz, fixed,
                         cat(obs_pose, np.int64, (0,)), cat(obs_point, np.int64, (0,)), cat(obs_p2, np.int64, (0,)),
                         cat(obs_xy, np.float64, (0, 2)), cat(obs_scale, np.float64, (0,)), camera, gauge)
