@@ -107,12 +107,13 @@ class BundleAdjustmentConfig:
     Levenberg-Marquardt with the Schur complement on the poses, nogil), the solution written back; the outlier
     test, second pass and track maintenance as with Ceres. Losses trivial, soft_l1 and huber; a map camera
     that is not PINHOLE (self-calibration's radial BA) or ``refine_intrinsics`` falls back to Ceres. Global BA
-    is always Ceres'. Measured (benchmarks/bench_local_ba.py; issue 48): every local BA problem of a default run
-    solved by both, interleaved, on a shared 2-core machine: ms per solve, compiled (read + solve + write back)
-    against Ceres (config + solve), 7-Scenes skip 5 847 against 1792, KITTI 07 skip 2 294 against 568, the
-    default sequence 248 against 567 (load 5-19: ~2x), final costs equal (median ratio 1.00000). Whole runs:
-    the default sequence 2.0 against 2.1 mm, KITTI 07 skip 2 0.439 against 0.445 m, but 7-Scenes skip 5
-    7.07, 4.98, 2.70 cm against 2.79, 2.97, 2.84 (seeds 0-2): not the default."""
+    is always Ceres'. Measured (benchmarks/bench_local_ba.py, issue 48): every local BA problem of a default run
+    solved by both from the same state, interleaved (2 shared cores, load 2-4): ms per solve, compiled (read +
+    solve + write back) against Ceres (config + solve), 7-Scenes skip 5 55.2 (8.8 + 42.1 + 4.3) against 108.7,
+    KITTI 07 skip 2 23.9 against 42.7, the default sequence 56.4 against 115.1; final costs equal (median
+    ratio 1.00000). Whole runs, compiled against Ceres: 7-Scenes skip 5 3.09, 2.83, 2.70 cm against 2.79,
+    2.97, 2.84 (seeds 0-2), KITTI 07 skip 2 0.439 against 0.445 m, the default sequence 2.0 against 2.1 mm
+    (seed 0)."""
 
     def validate(self) -> None:
         check_fields(self, "ba", {
