@@ -163,3 +163,36 @@ def test_every_module_stays_under_600_lines():
     assert sizes["slamkit.pipeline"] > 100  # the count reads the real files
     big = {m: n for m, n in sizes.items() if n >= MAX_MODULE_LINES}
     assert not big, f"modules of {MAX_MODULE_LINES} lines or more (split them by what they do): {big}"
+
+
+KERNELS = "slamkit.kernels"
+
+
+def _external_imports(path: Path) -> set[str]:
+    """Top-level names of every module a file imports (``import a.b`` -> ``a``; relative imports left out)."""
+    out = set()
+    for node in _import_nodes(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(a.name.split(".")[0] for a in node.names)
+        elif node.level == 0 and node.module:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+def test_kernels_import_neither_pycolmap_nor_the_stages():
+    """The numerical kernels (issue 48) work on plain arrays: a worker thread runs them beside tracking, and the
+    stages build their input from the map; they import no pycolmap and no slamkit module outside the kernels
+    but the errors."""
+    modules = _modules()
+    kernels = {m: p for m, p in modules.items() if m == KERNELS or m.startswith(KERNELS + ".")}
+    assert f"{KERNELS}.local_ba" in kernels
+    graph = import_graph()
+    allowed = {"slamkit.errors"}
+    bad = {m: sorted(t for t in graph[m] if not (t == KERNELS or t.startswith(KERNELS + ".")) and t not in allowed)
+           for m in kernels}
+    bad = {m: t for m, t in bad.items() if t}
+    assert not bad, f"kernel modules import slamkit modules outside slamkit/kernels: {bad}"
+    colmap = {m: sorted(n for n in _external_imports(p) if n in ("pycolmap", "pyceres", "cv2"))
+              for m, p in kernels.items()}
+    colmap = {m: n for m, n in colmap.items() if n}
+    assert not colmap, f"kernel modules import pycolmap / pyceres / OpenCV: {colmap}"

@@ -15,8 +15,17 @@ import numpy as np
 import pycolmap
 
 from ..errors import ConfigError, check_fields
+from ..kernels.local_ba import LOSSES as _COMPILED_LOSSES, local_bundle_adjustment
+from ..local_ba_problem import compiled_camera, local_problem, write_back
 from ..map import BA_LOSSES as _LOSSES, CAMERA_ID, SlamMap, bundle_adjustment_options, keypoint_scales
 from ..weighted_ba import weighted_adjust
+
+_EPS = float(np.finfo(np.float64).eps)
+"""COLMAP's reprojection cost is 0 for a point at depth below this (its behind-the-camera test)."""
+_COLMAP_SOLVER = {"parameter_tolerance": 0.0, "gradient_tolerance": 1e-4}
+"""COLMAP's BundleAdjustmentOptions' Ceres tolerances (pycolmap 4.2), which the compiled engine stops by too."""
+ENGINES = ("ceres", "compiled")
+"""Local BA's solvers: pycolmap's Ceres bundle adjuster, or :mod:`slamkit.kernels.local_ba`."""
 
 
 @dataclass(frozen=True)
@@ -91,6 +100,22 @@ class BundleAdjustmentConfig:
     from run to run, and over hundreds of BAs the trajectory diverges (benchmarks/HISTORY.md, "Measurements
     moved from docstrings"). -1 is faster on a multi-core machine when determinism does not matter."""
 
+    engine: str = "ceres"
+    """Local BA's solver. "ceres": pycolmap's bundle adjuster (Ceres), or :mod:`slamkit.weighted_ba` with
+    ``weighting`` "level". "compiled": the same problem, loss and weights read from the map as arrays
+    (:mod:`slamkit.local_ba_problem`) and solved by the compiled kernel (:mod:`slamkit.kernels.local_ba`:
+    Levenberg-Marquardt with the Schur complement on the poses, nogil), the solution written back; the outlier
+    test, second pass and track maintenance as with Ceres. Losses trivial, soft_l1 and huber; a map camera
+    that is not PINHOLE (self-calibration's radial BA) or ``refine_intrinsics`` falls back to Ceres. Global BA
+    is always Ceres'. Measured (benchmarks/bench_local_ba.py, issue 48): every local BA problem of a default run
+    solved by both from the same state, interleaved (2 shared cores, load 2-4): ms per solve, compiled (read +
+    solve + write back) against Ceres (config + solve), 7-Scenes skip 5 55.2 (8.8 + 42.1 + 4.3) against 108.7,
+    KITTI 07 skip 2 23.9 against 42.7, the default sequence 56.4 against 115.1; final costs equal (median
+    ratio 1.00000). Whole runs, compiled against Ceres (seeds 0-2): 7-Scenes skip 5 3.09, 2.83, 2.70 cm
+    against 2.79, 2.97, 2.84; the default sequence 1.96, 1.91, 1.96 mm against 2.09 each; but KITTI 07 skip 2
+    0.439, 0.440, 0.468 m against 0.445, 0.402, 0.380 (0.449 +- 0.010 against 0.409 +- 0.019): not the
+    default until that is understood."""
+
     def validate(self) -> None:
         check_fields(self, "ba", {
             "local_window": "[1, 10000]", "local_iterations": "[1, 10000]", "local_max_track_length": "[0, inf)",
@@ -105,6 +130,10 @@ class BundleAdjustmentConfig:
             raise ConfigError(f"ba.weighting must be 'level' or 'none' (got {self.weighting!r})")
         if self.loss not in _LOSSES:
             raise ConfigError(f"ba.loss must be one of {sorted(_LOSSES)} (got {self.loss!r})")
+        if self.engine not in ENGINES:
+            raise ConfigError(f"ba.engine must be one of {list(ENGINES)} (got {self.engine!r})")
+        if self.engine == "compiled" and self.loss not in _COMPILED_LOSSES:
+            raise ConfigError(f"ba.engine 'compiled' takes ba.loss {sorted(_COMPILED_LOSSES)} (got {self.loss!r})")
 
 
 @dataclass(frozen=True)
@@ -206,6 +235,8 @@ class BundleAdjuster:
     def _solve_local(self, slam_map: SlamMap, window: list[int]) -> tuple[str, int]:
         """One local BA solve over ``window``; returns (termination, number of the window's points)."""
         c = self.config
+        if c.engine == "compiled" and not c.refine_intrinsics and compiled_camera(slam_map) is not None:
+            return self._solve_local_compiled(slam_map, window)
         if c.weighting == "level" and not c.refine_intrinsics:
             var, const = self._local_points(slam_map, window)
             gauge = sorted(window)[:2] if len(window) >= slam_map.num_keyframes else ()
@@ -217,6 +248,23 @@ class BundleAdjuster:
         summary = pycolmap.create_default_bundle_adjuster(
             self._options(c.local_iterations), cfg, slam_map.reconstruction).solve()
         return str(summary.termination_type).split(".")[-1], len(points)
+
+    def _solve_local_compiled(self, slam_map: SlamMap, window: list[int]) -> tuple[str, int]:
+        """:meth:`_solve_local` by the compiled kernel on the map's arrays (``engine`` "compiled")."""
+        c = self.config
+        problem = local_problem(slam_map, window, c.local_max_track_length)
+        if c.weighting == "level":  # ORB-SLAM's: information 1/sigma^2, Huber at sqrt(chi2) on the whitened error
+            weight, loss, scale = 1.0 / problem.obs_scale ** 2, "huber", float(np.sqrt(c.outlier_chi2 or 5.991))
+        else:  # COLMAP's: every observation alike, the robust loss at 1 px
+            weight, loss, scale = None, c.loss, 1.0
+        res = local_bundle_adjustment(problem.cam_from_world, problem.points, problem.obs_pose, problem.obs_point,
+                                      problem.obs_xy, problem.camera, weight, problem.pose_fixed,
+                                      problem.point_fixed, problem.gauge, loss, scale, c.local_iterations,
+                                      c.function_tolerance, _COLMAP_SOLVER["parameter_tolerance"],
+                                      _COLMAP_SOLVER["gradient_tolerance"], min_depth=_EPS, behind_camera="zero")
+        if res.success:
+            write_back(slam_map, problem, res.cam_from_world, res.points)
+        return res.termination, len(problem.point3D_ids)
 
     def _local_points(self, slam_map: SlamMap, window: list[int]) -> tuple[np.ndarray, np.ndarray]:
         """The window's points: (variable, held constant: tracks longer than ``local_max_track_length``)."""
