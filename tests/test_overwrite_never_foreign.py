@@ -309,7 +309,7 @@ def test_the_app_s_save_keeps_its_map_html_and_refuses_a_user_s_file(slam, run):
 
 def test_the_app_s_export_html_replaces_only_a_map_slamkit_wrote(tmp_path):
     """:meth:`SlamApp.export_html` asks this before it writes over an existing file."""
-    from slamkit.viz.app import _is_slamkit_map
+    from slamkit.viz.kept_files import is_slamkit_map as _is_slamkit_map
 
     mine, ours = tmp_path / "map.html", tmp_path / "ours.html"
     mine.write_text("<html><title>my thesis figure</title></html>")

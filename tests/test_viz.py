@@ -628,7 +628,7 @@ def test_app_controls_pending_reset_and_background_run(run, tmp_path):
         assert "kept map.html" in app.status_text and not list(saved.parent.glob(".out.kept-*"))
         (saved / "notes.txt").write_text("mine")
         app.b_save.click()
-        assert "not empty and is not a slamkit run" in app.status_text, app.status_text
+        assert "also holds what slamkit did not write (notes.txt)" in app.status_text, app.status_text
         assert (saved / "notes.txt").read_text() == "mine" and (saved / "map.html").read_text() == page
         (saved / "notes.txt").unlink()
         # Export dataset: every posed frame of the main segment, its image beside the model

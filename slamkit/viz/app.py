@@ -38,18 +38,13 @@ from . import frame_view as fv
 from .app_widgets import LABELS, AppWidgets, config_values
 from .app_widgets import feature_options, unavailable_html as _unavailable_html  # noqa: F401 (their old home)
 from .explain import camera_html, flow_help_html, legend_html, scale_html
-from .kept_files import keeping_unsaved_files
+from .kept_files import is_slamkit_map as _is_slamkit_map, keeping_unsaved_files
 from .meshcat_view import MapView, legend_html as view_legend_html
 from .settings import ViewSettings
-from .static_twin import StaticTwin
+from .static_twin import MOVED_TEXT, StaticTwin
 
 DEFAULT_SOURCE = "default"
 """The embedded synthetic sequence (exact ground truth)."""
-
-
-MOVED_TEXT = ("The app moved to a later cell (it was displayed again there); below, its picture and status as they "
-              "were when it left this one, which the cells that follow here describe.")
-"""What an earlier place of the app shows once the app is displayed again further down."""
 
 
 class SlamApp(AppWidgets):
@@ -93,8 +88,7 @@ class SlamApp(AppWidgets):
 
     # ------------------------------------------------------------------ sources
     def _open(self, spec: str, config: SlamConfig | None = None):
-        """The source ``spec``, opened as ``slamkit run`` opens it for ``config`` (its camera numbers applied
-        first, :func:`~slamkit.run_camera.open_for_config`), once per spec and camera."""
+        """The source ``spec`` opened as ``slamkit run`` opens it for ``config`` (once per spec and camera)."""
         config = config if config is not None else self.slam.config if hasattr(self, "slam") else SlamConfig()
         key = (spec, config.camera)
         if key not in self._sources:
@@ -256,16 +250,13 @@ class SlamApp(AppWidgets):
         ``progress``, a text progress bar (a saved notebook keeps it) counts the frames to the end of the run."""
         from .progress import progress_bar
 
-        out = []
-        left = len(self.slam) - len(self.slam.records)
+        out, left = [], len(self.slam) - len(self.slam.records)
         todo = left if max_steps is None else min(left, max_steps)
         bar = progress_bar(todo, "frame", "app.run") if progress and todo > 0 else None
         while not self.slam.done and (max_steps is None or len(out) < max_steps):
             out.append(self.step())
-            if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+            bar is not None and bar.update(1)
+        bar is not None and bar.close()
         return out
 
     def toggle_run(self) -> None:
@@ -606,13 +597,3 @@ class SlamApp(AppWidgets):
 
 __all__ = ["SlamApp", "DEFAULT_SOURCE"]
 
-
-def _is_slamkit_map(path: Path) -> bool:
-    """``path`` is a regular file holding the title of a map slamkit exported ("slamkit map")."""
-    try:
-        if path.is_symlink() or not path.is_file():
-            return False
-        with open(path, "rb") as f:
-            return b"slamkit map" in f.read(1 << 20)
-    except OSError:
-        return False

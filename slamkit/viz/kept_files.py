@@ -62,4 +62,15 @@ def keeping_unsaved_files(run_dir: str | os.PathLike) -> Iterator[list[str]]:
         shutil.rmtree(aside, ignore_errors=True)
 
 
-__all__ = ["unsaved_entries", "keeping_unsaved_files", "WRITTEN_LATER"]
+__all__ = ["unsaved_entries", "keeping_unsaved_files", "is_slamkit_map", "WRITTEN_LATER"]
+
+
+def is_slamkit_map(path: Path) -> bool:
+    """``path`` is a regular file holding the title of a map slamkit exported ("slamkit map")."""
+    try:
+        if path.is_symlink() or not path.is_file():
+            return False
+        with open(path, "rb") as f:
+            return b"slamkit map" in f.read(1 << 20)
+    except OSError:
+        return False

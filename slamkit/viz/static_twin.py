@@ -258,6 +258,11 @@ def app_text(app: "SlamApp") -> str:
     return "\n".join(lines)
 
 
+MOVED_TEXT = ("The app moved to a later cell (it was displayed again there); below, its picture and status as they "
+              "were when it left this one, which the cells that follow here describe.")
+"""What an earlier place of the app shows once the app is displayed again further down."""
+
+
 class StaticTwin:
     """The twin outputs of an app: shown by :meth:`show` (under the widgets), redrawn by :meth:`refresh`
     when the app changed (at most every ``min_interval`` seconds unless forced)."""
