@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SessionError
-from .io.fingerprint import FINGERPRINT_COLUMNS, changed, frame_file
+from .io.fingerprint import FINGERPRINT_COLUMNS, MAX_NAMED, also_changed, changed, frame_file
 from .types import Fingerprint
 
 SESSION_DIR = "session"
@@ -80,10 +80,6 @@ def check_source(saved: dict, source, folder: Path) -> None:
                            f"({now['frames']} frames)")
 
 
-MAX_NAMED = 5
-"""Frames named one by one when a resume finds several that differ (the rest are counted)."""
-
-
 def _recorded_frames(meta: dict, folder: Path) -> tuple[list[dict], str]:
     """What the session says of each frame it processed: index, status, unreadable and the fingerprint
     columns (``frames.csv``'s names), and where that came from. A session of slamkit before issue 50 holds no
@@ -140,11 +136,7 @@ def check_frames_read(meta: dict, source, indices: np.ndarray, folder: Path) -> 
     if differ:
         (r, why), rest = differ[0], differ[1:]
         name = r.get("file") or "?"
-        also = ""
-        if rest:
-            named = ", ".join(f"{x['index']} ({x.get('file') or '?'})" for x, _ in rest[:MAX_NAMED])
-            more = f" and {len(rest) - MAX_NAMED} more" if len(rest) > MAX_NAMED else ""
-            also = f"; so are frame{'s' if len(rest) > 1 else ''} {named}{more}"
+        also = also_changed([(x["index"], x.get("file")) for x, _ in rest])
         raise SessionError(f"{folder}: frame {r['index']} ({name}) is not the image the run read: {why}{also}; "
                            f"{len(differ)} of the {len(read)} frames processed differ, so nothing was resumed or "
                            "written — give the source the run was made on")

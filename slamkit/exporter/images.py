@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from ..errors import OutputError, SlamkitError
-from ..io.fingerprint import changed, frame_file
+from ..io.fingerprint import also_changed, changed, frame_file
 from ..io.run_dir import source_paths
 from ..sources import open_source
 from ..sources.base import FrameSource, ImageListSource
@@ -63,10 +63,6 @@ def _count_changed(run: SavedRun, source: FrameSource, detail: str) -> SlamkitEr
                         "(source=)")
 
 
-MAX_NAMED = 5
-"""Changed frames named one by one in the export's refusal (the rest are counted)."""
-
-
 def check_unchanged(run: SavedRun, source: FrameSource, frames: list[PosedFrame]) -> None:
     """SlamkitError, one line naming the frames of ``frames`` whose file is not the one the run read (missing,
     another size, other bytes: :func:`slamkit.io.fingerprint.changed`, against what the run measured when it
@@ -88,11 +84,7 @@ def check_unchanged(run: SavedRun, source: FrameSource, frames: list[PosedFrame]
             found.append((f, why))
     if found:
         (f, why), rest = found[0], found[1:]
-        also = ""
-        if rest:
-            named = ", ".join(f"{g.index} ({g.fingerprint.get('file') or '?'})" for g, _ in rest[:MAX_NAMED])
-            more = f" and {len(rest) - MAX_NAMED} more" if len(rest) > MAX_NAMED else ""
-            also = f"; so are frame{'s' if len(rest) > 1 else ''} {named}{more}"
+        also = also_changed([(g.index, g.fingerprint.get("file")) for g, _ in rest])
         raise SlamkitError(f"{run.path}: frame {f.index} (dataset frame {f.frame_id}) is not the image the run "
                            f"posed: {why}{also}; the source changed after the run read it, so nothing was exported "
                            "— restore its images, or run again on the source as it is now")

@@ -25,7 +25,8 @@ import numpy as np
 from ..errors import shown
 from ..types import Fingerprint
 
-__all__ = ["FINGERPRINT_COLUMNS", "changed", "csv_fields", "frame_file", "image_size_of", "measure"]
+__all__ = ["FINGERPRINT_COLUMNS", "MAX_NAMED", "also_changed", "changed", "csv_fields", "frame_file", "image_size_of",
+           "measure"]
 
 FINGERPRINT_COLUMNS = ("file", "bytes", "width", "height", "sha256")
 
@@ -156,3 +157,17 @@ def changed(recorded: dict | Fingerprint, source, i: int, now: Fingerprint | Non
         sizes = f"; {now.bytes} bytes, the run read {size}" if other_size else ""
         return f"{where} has other content than the run read (SHA-256 differs{sizes})"
     return None
+
+
+MAX_NAMED = 5
+"""Frames named one by one when several differ from their fingerprints (the rest are counted)."""
+
+
+def also_changed(rest: list[tuple[object, str]]) -> str:
+    """"; so are frames 7 (b.png), 9 (c.png) and 3 more" for the changed frames after the first, given as
+    (frame index, file name) pairs; "" when there are none."""
+    if not rest:
+        return ""
+    named = ", ".join(f"{index} ({name or '?'})" for index, name in rest[:MAX_NAMED])
+    more = f" and {len(rest) - MAX_NAMED} more" if len(rest) > MAX_NAMED else ""
+    return f"; so are frame{'s' if len(rest) > 1 else ''} {named}{more}"
