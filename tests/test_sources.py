@@ -487,15 +487,19 @@ def test_open_source_detects_every_layout(tmp_path):
 
 
 def test_open_source_dispatches_synthetic_specs(monkeypatch):
-    calls = []
+    calls, made = [], []
+
+    class Opened:  # what the stand-in opener returns; open_source records the spec it was opened from on it
+        pass
 
     def open_synthetic(spec, *, frame_skip=1, max_frames=None):
         calls.append((spec, frame_skip, max_frames))
-        return "synthetic source"
+        made.append(Opened())
+        return made[-1]
 
     monkeypatch.setattr(source_opener, "open_synthetic", open_synthetic)
-    assert open_source("default") == "synthetic source"
-    assert open_source("synthetic:loop?n=30", frame_skip=2, max_frames=5) == "synthetic source"
+    assert open_source("default") is made[0] and made[0].spec == "default"
+    assert open_source("synthetic:loop?n=30", frame_skip=2, max_frames=5) is made[1]
     assert calls == [("default", 1, None), ("synthetic:loop?n=30", 2, 5)]
 
 
