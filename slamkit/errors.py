@@ -206,6 +206,10 @@ class SessionError(SlamkitError):
     """A saved run or session is missing, damaged, or does not belong to the given source."""
 
 
+class MapError(SessionError):
+    """A saved run's map cannot be reused (``--map``): not a run, no map, another version or camera."""
+
+
 def missing_reason(path: str | os.PathLike) -> str:
     """Why ``path`` cannot be opened, in a few words for a message: "does not exist", "is a loop of symbolic
     links", "is a symbolic link to X, which does not exist", or the OS's reason. "" when it exists."""

@@ -25,6 +25,7 @@ from .interrupt import deferred_interrupt
 from .io.run import save_run
 from .local_map import LocalMap
 from .map import SlamMap
+from .map_reuse import MapReuse, map_config
 from .merging import MergeResult, merge_candidate
 from .results import StepResult, TrackedMatches
 from .rotation_phase import RotationPhase
@@ -86,7 +87,7 @@ class Slam:
     _last_ids = _state_view("last_ids", "")
 
     def __init__(self, source: FrameSource | str, config: SlamConfig | str | None = None,
-                 callbacks: list[Callback] | None = None):
+                 callbacks: list[Callback] | None = None, map: str | Path | None = None, localize_only: bool = False):
         if not isinstance(source, (str, Path)) and not all(hasattr(source, a) for a in ("camera", "__len__")):
             check_type(source, (FrameSource, str, Path), "source", "give a spec ('default'), a path or a "
                        "FrameSource (or an object with its camera, frames and timestamps)")
@@ -96,7 +97,8 @@ class Slam:
             config = SlamConfig()
         elif isinstance(config, str):
             config = SlamConfig.preset(config)
-        self.config = config.validate()
+        self._map = (map, bool(localize_only))  # a saved run's map to localize in (slamkit.map_reuse)
+        self.config = config.validate() if map is None else map_config(config, localize_only)
         self.source_spec = str(source) if isinstance(source, (str, Path)) else getattr(source, "spec", None)
         """How the source was opened (a spec; an ``open_source`` source's own), so resume and export reopen it."""
         if isinstance(source, (str, Path)):
@@ -112,7 +114,7 @@ class Slam:
         """Start over (with a new config if given): empty map, first frame next."""
         self.loader.drain()  # before the stages it uses are replaced
         if config is not None:
-            self.config = config.validate()
+            self.config = config.validate() if self._map[0] is None else map_config(config, self._map[1])
         c = self.config
         self.camera, self.camera_origin, self.calibrator = choose_camera(
             c, self.source.camera, bool(getattr(self.source, "camera_in_spec", False)))
@@ -144,6 +146,7 @@ class Slam:
         self.last_frame: Frame | None = None
         self.last_features: FrameFeatures | None = None
         self.last_result: StepResult | None = None
+        self.map_reuse = MapReuse.attach(self, *self._map) if self._map[0] is not None else None
 
     @property
     def extractor(self):
@@ -237,8 +240,9 @@ class Slam:
             self.last_frame, self.last_features = frame, ff
             record = FrameRecord.of_frame(frame, LOST)  # with its fingerprint, measured as it was read (issue 50)
             st.records.append(record)
-            if st.segment is None:
-                result = self._initialize(ff, record, timings)
+            if st.segment is None:  # with a saved map it is looked for there first (map_reuse)
+                result = (self.map_reuse.seek(self, ff, record, timings) if self.map_reuse is not None
+                          else self._initialize(ff, record, timings))
             else:
                 result = self._track(ff, record, timings)
         st.wall_time += time.perf_counter() - t_start
@@ -347,6 +351,8 @@ class Slam:
         timings["keyframe"] = time.perf_counter() - t
         message = (f"relocalized against keyframe {reference}: " if relocalized else "") + tr.reason
         is_kf, ba_kind, (loop, merge), mapping = False, "", (LoopClosingResult(), None), None
+        if decision.is_keyframe and self.map_reuse is not None and self.map_reuse.localize_only:
+            decision = self.map_reuse.reanchor(self, tr, decision)  # the map is left as it is
         if decision.is_keyframe:
             inserted = self._insert_keyframe(ff, record, tr, decision, timings)
             is_kf, ba_kind, message, decision, (loop, merge), mapping = inserted
@@ -474,7 +480,7 @@ class Slam:
     def _merge_maps(self, candidate: MergeCandidate) -> MergeResult:
         """The current segment recognised a place of an earlier one: merged into it
         (:func:`~slamkit.merging.merge_candidate`); tracking continues in the merged map."""
-        res = merge_candidate(self.state, candidate)
+        res = merge_candidate(self.state, self.map_reuse.orient(self.state, candidate) if self.map_reuse else candidate)
         self.loop_closer.rebuild(self.state.segments)  # image ids of the moved keyframes changed
         return res
 
@@ -542,15 +548,8 @@ class Slam:
         """(4, 4) cam_from_world of a frame (record or index) in its segment's map, or None."""
         return self.state.pose_of(rec)
 
-    @property
-    def slam_map(self) -> SlamMap | None:
-        """The map of the current segment (or of the largest one once tracking ended)."""
-        return self.state.slam_map
-
-    @property
-    def main_segment(self) -> Segment | None:
-        """The segment with the most posed frames."""
-        return self.state.main_segment
+    slam_map = _state_view("slam_map", "The map of the current segment (or of the largest one once tracking ended).")
+    main_segment = _state_view("main_segment", "The segment with the most posed frames.")
 
     def trajectory(self, keyframes_only: bool = False, segment: int | None = None):
         """Camera-to-world poses of the posed frames of a segment (default: the main one), source timestamps
@@ -562,7 +561,8 @@ class Slam:
         st = self.state
         why = None if st.segments else st.why_not_initialized()
         return {"source": getattr(self.source, "name", str(self.source)), **st.summary(len(self.indices), why),
-                "camera": self.camera_report(), "config": self.config.to_dict()}
+                "camera": self.camera_report(), "config": self.config.to_dict(),
+                **({"map": self.map_reuse.summary(st)} if self.map_reuse is not None else {})}
 
     def camera_report(self) -> dict:
         """The camera used and how it was obtained (with self-calibration: its estimate, uncertainty and

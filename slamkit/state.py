@@ -169,6 +169,9 @@ class Segment:
     merged_into: int = -1
     """Id of the segment this one was merged into (``slamkit.merging.merge_segments``; it is then empty and
     kept only so segment ids stay indices), -1 while it is a map of its own."""
+    prior: bool = False
+    """Loaded from a saved run's map (``Slam(..., map=RUN_DIR)``, :mod:`slamkit.map_reuse`): its keyframes are
+    no frames of this run (negative frame indices)."""
     rotation_only: bool = False
     """The frames only turned: one keyframe, no points, every frame posed by its orientation
     (``slamkit.rotation_phase.rotation_only_segment``)."""

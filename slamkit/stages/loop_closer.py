@@ -201,6 +201,16 @@ class _Verified:
     """(K, 2) inlier (query point id, candidate point id)."""
 
 
+PRIOR_KEY_BASE = 1 << 40
+"""Database keys of a loaded map's keyframes (negative frame indices, :mod:`slamkit.map_reuse`) start here."""
+
+
+def place_key(frame_index: int) -> int:
+    """The place database's key of a keyframe: its frame index, unique across segments (a loaded map's
+    keyframes, with negative frame indices, above :data:`PRIOR_KEY_BASE`)."""
+    return int(frame_index) if frame_index >= 0 else PRIOR_KEY_BASE - int(frame_index)
+
+
 class LoopCloser:
     """Place database of the run + loop detection/correction; see the module docstring."""
 
@@ -223,7 +233,7 @@ class LoopCloser:
     def add(self, seg: "Segment", image_id: int) -> tuple[int, tuple[np.ndarray, np.ndarray]]:
         """Store keyframe ``image_id`` of ``seg``; returns its key and bag of words."""
         kf = seg.slam_map.keyframes[image_id]
-        key = int(kf.frame_index)
+        key = place_key(kf.frame_index)
         db = self._database()
         bow = db.vocabulary.bow(kf.features.descriptors)
         db.add_bow(key, *bow)
@@ -364,6 +374,7 @@ class LoopCloser:
         travelled in ``seg`` from the candidate keyframe to it (every posed frame's centre in between)."""
         m = seg.slam_map
         first, last = sorted((m.keyframes[found.image_id].frame_index, m.keyframes[image_id].frame_index))
+        first = max(first, 0)  # a loaded map's keyframe (slamkit.map_reuse): the path since this run began
         poses = [state.pose_of(r) for r in state.records[first:last + 1] if r.segment == seg.id]
         centres = np.array([_center(p) for p in poses if p is not None])
         path = float(np.linalg.norm(np.diff(centres, axis=0), axis=1).sum()) if len(centres) > 1 else 0.0
