@@ -22,6 +22,7 @@ from .config import PRESETS, SlamConfig, is_camera_path
 from .errors import SlamkitError, shown
 from .eval import evaluate
 from .eval.metrics import ate_line
+from .eval.map_alignment import map_alignment_error
 from .eval.report import check_posed, evaluate_run
 from .exporter import add_export_parser
 from .eval.pairing import read_frame_table
@@ -131,13 +132,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         if args.verbose:
             tqdm.write(str(r))
 
+    if args.localize_only and not args.map:
+        raise SlamkitError("--localize-only: localizes in a saved map; give it with --map RUN_DIR")
+    if args.map and args.resume:
+        raise SlamkitError("--map with --resume: a run in a saved map is made in one go; run it again without "
+                           "--resume into a new --out")
     outcome, before = None, save_id(out)
     with StopRequest() as stop:  # signals are handled until the last line is printed
         try:
             outcome = run_to_folder(args.source, args.out, config_from_args(args), resume=args.resume,
                                     resume_overrides=_resume_overrides(args) if args.resume else None,
                                     overwrite=args.overwrite, on_start=on_start, on_result=on_result, notify=note,
-                                    stop=stop)
+                                    stop=stop, map=args.map, localize_only=args.localize_only)
             if bar is not None:
                 bar.close()
             return _report_run(args, outcome)
@@ -161,6 +167,11 @@ def _report_run(args: argparse.Namespace, outcome: RunOutcome) -> int:
         print(f"slamkit: {outcome.message}", file=sys.stderr)
         return outcome.exit_code
     print(summary_line(outcome.summary), file=sys.stderr)
+    if isinstance(outcome.summary.get("map"), dict):
+        m = outcome.summary["map"]
+        print(f"map of {m['run']}: {m['frames_in_map']} frames posed in it, keyframes {m['keyframes_loaded']} -> "
+              f"{m['keyframes']}, points {m['points_loaded']} -> {m['points3D']}"
+              + ("" if not m.get("note") else f"; {m['note']}"), file=sys.stderr)
     if outcome.ate is not None:
         print(f"{ate_line(outcome.ate)} ({outcome.ate['matched']} poses)", file=sys.stderr)
     elif outcome.evaluation_error:
@@ -206,6 +217,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"{ate_line(a)} over {a['count']} frames"
               + (f", {100 * k['rmse']:.2f} cm over {k['count']} keyframes" if k and not k.get("undefined") else "")
               + f" (Sim(3)-aligned); report: {result['report_md']} and {result['report_html']}", file=sys.stderr)
+        prior = result.get("map_alignment")
+        if isinstance(prior, dict):
+            print(f"under the map's alignment ({prior['map_run']}): "
+                  + (f"ATE RMSE {100 * prior['ate']['rmse']:.2f} cm over {prior['matched']} frames"
+                     if "ate" in prior else prior.get("error", "")) + (f" ({prior['note']})" if prior.get("note") else ""),
+                  file=sys.stderr)
         if isinstance(result.get("camera"), dict) and result["camera"].get("description"):
             print(f"camera: {result['camera']['description']}", file=sys.stderr)
         print(json.dumps(result, indent=2))
@@ -222,6 +239,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
             raise SlamkitError(f"{gt}: no ground truth beside the trajectory; pass --gt FILE")
     frames = read_frame_table(run) if run.is_dir() and is_run_folder(run) else None
     result = evaluate(est, gt, max_dt=args.max_dt, frames=frames)
+    prior = map_alignment_error(run, args.gt, args.max_dt) if run.is_dir() else None
+    if prior is not None:
+        result["map_alignment"] = prior
     code = _print_notes(result)
     print(json.dumps(result, indent=2))
     return code
@@ -356,6 +376,11 @@ def _add_run_parser(sub) -> None:
     r.add_argument("--resume", action="store_true",
                    help="continue the run saved in --out (its session/) if there is one: same source, the saved "
                         "config changed only by the options given; else start a new run")
+    r.add_argument("--map", metavar="RUN_DIR",
+                   help="pose the frames in the map of an earlier run (its frame and scale) and extend that map; "
+                        "the earlier run folder is only read (the same camera and image size)")
+    r.add_argument("--localize-only", action="store_true",
+                   help="with --map: localize only, adding no keyframe and no point (ORB-SLAM's localization mode)")
     r.add_argument("-v", "--verbose", action="store_true", help="print every frame's result")
     r.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_config_args(r)

@@ -180,6 +180,9 @@ class MapReuse:
                                                                            SEEK_CANDIDATES)))
         self.found = 0
         """Frames that found the map while no segment was tracked."""
+        self.centres = _centres(prior.segment.slam_map, sorted(prior.segment.slam_map.keyframes))
+        """Image id -> camera centre of each loaded keyframe as it was loaded (:meth:`keep_frame`)."""
+        self.frame_correction: dict | None = None
 
     @classmethod
     def attach(cls, slam: "Slam", run_dir: str | Path, localize_only: bool) -> "MapReuse":
@@ -192,6 +195,7 @@ class MapReuse:
         slam._use_camera(prior.camera)
         slam.state.segments = [prior.segment]
         slam.loop_closer.rebuild(slam.state.segments)
+        slam.bundle_adjuster.restore({**slam.bundle_adjuster.state(), "keyframes_at_last_global": prior.keyframes})
         c = slam.config
         return cls(prior, localize_only, RelocalizerConfig(c.relocalization_candidates, c.tracker.local_keyframes,
                                                            c.tracker.point_descriptor))
@@ -246,6 +250,29 @@ class MapReuse:
                               candidate.query_image_id, candidate.matches, candidate.inliers,
                               np.linalg.inv(candidate.tgt_from_src), candidate.point_pairs[:, ::-1].copy())
 
+    def keep_frame(self, state) -> None:
+        """After the final bundle adjustment: the map is moved back to the frame and scale it was loaded in, by
+        the Sim(3) that best maps its loaded keyframes' centres now onto where they were loaded
+        (``pycolmap.estimate_sim3d``), applied to the map and so to every frame posed in it. Bundle
+        adjustment holds two poses of the map fixed (its gauge), local BA its window's neighbours; the other
+        loaded keyframes may still move a little as the map grows, and a run in a map must keep its frame."""
+        seg = state.resolve_segment(self.prior.segment.id)
+        slam_map = seg.slam_map
+        ids = [i for i in self.centres if i in slam_map.keyframes]
+        if len(ids) < 3 or self.localize_only:  # localizing only, nothing moved
+            return
+        now, was = _centres(slam_map, ids), np.array([self.centres[i] for i in ids])
+        sim = pycolmap.estimate_sim3d(np.array([now[i] for i in ids]), was)
+        if sim is None:
+            return
+        slam_map.reconstruction.transform(sim)
+        slam_map.changed()
+        state.apply_normalization(seg, float(sim.scale))
+        moved = _centres(slam_map, ids)
+        self.frame_correction = {"scale": float(sim.scale), "keyframes": len(ids),
+                                 "residual_rms": float(np.sqrt(np.mean([np.sum((moved[i] - self.centres[i]) ** 2)
+                                                                        for i in ids])))}
+
     # ----------------------------------------------------------------- the outcome
     def summary(self, state) -> dict:
         """What the run did with the map (``summary.json["map"]``), with a line when the video never met it."""
@@ -258,7 +285,7 @@ class MapReuse:
                "keyframes_loaded": self.prior.keyframes, "points_loaded": self.prior.points,
                "keyframes": seg.slam_map.num_keyframes, "points3D": seg.slam_map.num_points,
                "frames_in_map": int(in_map), "found_map": int(self.found),
-               "main_in_map": main is seg}
+               "main_in_map": main is seg, "frame_correction": self.frame_correction}
         if state.records and in_map == 0:
             where = (f"its frames are in a new segment ({main.id})" if main is not None and not self.localize_only
                      else "no frame was posed")
@@ -267,6 +294,15 @@ class MapReuse:
             out["note"] = (f"{in_map} frames are in the map of {self.prior.run_dir}, more in segment {main.id} "
                            "that never met it: trajectory_tum.txt is that segment's")
         return out
+
+
+def _centres(slam_map: SlamMap, ids) -> dict[int, np.ndarray]:
+    """Image id -> camera centre (world) of keyframes ``ids``."""
+    out = {}
+    for i in ids:
+        m = slam_map.cam_from_world(i).matrix()
+        out[i] = -m[:, :3].T @ m[:, 3]
+    return out
 
 
 def check_camera(prior: PriorMap, slam: "Slam") -> None:

@@ -520,6 +520,8 @@ class Slam:
                                              sc.max_radial)
                 if refine:
                     self._refined(seg.slam_map, final=True, k1=k1, before=before)
+        if self.map_reuse is not None:  # a saved map goes back to the frame and scale it was loaded in
+            self.map_reuse.keep_frame(st)
         st.timings["ba"] = st.timings.get("ba", 0.0) + time.perf_counter() - t
         t2 = time.perf_counter()
         self.pose_refiner.refine(st, self.camera.dist)  # motion-only BA of the frames PnP posed, on the final map

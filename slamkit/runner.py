@@ -85,7 +85,7 @@ class RunOutcome:
 
 
 def _open(source, out: Path, config: SlamConfig | None, resume: bool, resume_overrides: dict | None,
-          notify: Callable[[str], None]) -> tuple[Slam, int | None]:
+          notify: Callable[[str], None], map=None, localize_only: bool = False) -> tuple[Slam, int | None]:
     if resume:
         session = find_session(out)
         if session is None:
@@ -93,7 +93,7 @@ def _open(source, out: Path, config: SlamConfig | None, resume: bool, resume_ove
         else:
             slam = Slam.resume(session, source, resume_overrides or None)
             return slam, len(slam.records)
-    return Slam(source, config or SlamConfig()), None
+    return Slam(source, config or SlamConfig(), map=map, localize_only=localize_only), None
 
 
 def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, resume: bool = False,
@@ -101,7 +101,8 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
                   on_start: Callable[[Slam, int | None], None] | None = None,
                   on_result: Callable[[Slam, StepResult], None] | None = None,
                   notify: Callable[[str], None] | None = None, evaluate_ate: bool = True,
-                  stop: StopRequest | None = None) -> RunOutcome:
+                  stop: StopRequest | None = None, map: str | Path | None = None,
+                  localize_only: bool = False) -> RunOutcome:
     """Run (or with ``resume`` continue) SLAM on ``source`` and save it to ``out``; see the module docstring.
 
     source: a spec, path or FrameSource. config: the configuration of a new run. resume: continue the session
@@ -110,9 +111,11 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
     notify(line): one-line notes (signals received, no session to resume); default: none.
     stop: a :class:`StopRequest` the caller has installed already (to keep handling signals after this returns,
         as the CLI does while it prints); None installs one for the duration of the call.
-    Raises SlamkitError before any work for a bad ``out``, source or config (nothing is written then).
+    map: a saved run folder whose map the frames are posed in and extend (only read; ``localize_only``: not
+        extended), :mod:`slamkit.map_reuse`.
+    Raises SlamkitError before any work for a bad ``out``, source, map or config (nothing is written then).
     """
-    check_out_dir(out, [source], overwrite)  # the raw value: "" is refused, not taken for "."
+    check_out_dir(out, [source, *([map] if map is not None else [])], overwrite)  # the raw value: "" is refused, not taken for "."
     out = Path(out)
     notify = notify or (lambda line: None)
     state: dict = {}
@@ -133,9 +136,9 @@ def run_to_folder(source, out: str | Path, config: SlamConfig | None = None, *, 
     stop.on_signal = on_signal
     with out_dir_lock(out), stop if own else contextlib.nullcontext():
         remove_stale_temporaries(out)
-        slam, resumed_after = _open(source, out, config, resume, resume_overrides, notify)
+        slam, resumed_after = _open(source, out, config, resume, resume_overrides, notify, map, localize_only)
         state["slam"] = slam
-        check_out_dir(out, [source, slam.source], overwrite)
+        check_out_dir(out, [source, slam.source, *([map] if map is not None else [])], overwrite)
         if on_start is not None and stop.signum is None:  # a signal while opening: stop now, not after on_start
             on_start(slam, resumed_after)
         if stop.signum is not None:  # before the first frame: nothing new to save

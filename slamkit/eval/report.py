@@ -27,6 +27,7 @@ from ..io.run_dir import (PLOT_FILES, REPORT_FILES, REPORT_MARKER, REPORT_MARKS,
 from ..io.saved import check_json, check_run
 from ..io.trajectory import check_input_file, read_tum
 from ..types import Trajectory
+from .map_alignment import map_alignment_error
 from .metrics import ate, matched_warning, rpe
 from .pairing import load_pair, read_frame_table
 
@@ -93,6 +94,9 @@ def evaluate_run(run_dir: str | os.PathLike, gt: str | os.PathLike | None = None
         "timings_s": summary.get("timings_s", {}),
         "camera": summary.get("camera"),
     }
+    prior = map_alignment_error(run, gt, max_dt)  # a run made in a saved map (--map): under the map's alignment
+    if prior is not None:
+        result["map_alignment"] = prior
     if dest == run:
         _write_report(run, run, result, summary, est, gt_traj, kf_traj, a, r, plots, map_view)
     else:

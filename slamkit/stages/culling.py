@@ -82,13 +82,15 @@ class KeyframeCuller:
 
     def step(self, slam_map: SlamMap, new_image_id: int, exclude: tuple[int, ...] = ()) -> CullingResult:
         """Cull over the local window of keyframe ``new_image_id``. Never the new keyframe, ``exclude``, the
-        map's first two keyframes (they hold the gauge), the ``keep_recent`` newest, or while the map has
-        fewer than ``min_keyframes`` keyframes."""
+        map's first two keyframes (they hold the gauge), the ``keep_recent`` newest, a loaded map's keyframes
+        (negative frame indices, :mod:`slamkit.map_reuse`: they hold its frame), or while the map has fewer than
+        ``min_keyframes`` keyframes."""
         c = self.config
         if c.redundant <= 0 or slam_map.num_keyframes < c.min_keyframes:
             return CullingResult((), "culling off" if c.redundant <= 0 else "young map")
         ids = sorted(slam_map.keyframes)
-        protected = {new_image_id, *exclude, *ids[:2], *ids[len(ids) - c.keep_recent:]}
+        protected = {new_image_id, *exclude, *ids[:2], *ids[len(ids) - c.keep_recent:],
+                     *(i for i in ids if slam_map.keyframes[i].frame_index < 0)}
         culled = []
         window = slam_map.covisible(new_image_id, c.window)
         for iid, _ in window:

@@ -403,6 +403,7 @@ class LoopCloser:
         c_group = [found.image_id] + [i for i, _ in slam_map.covisible(found.image_id) if i < mid][:c.loop_group]
         edges += [loop_edge(a, b, poses[a], poses[b], sim) for a in q_group for b in c_group]
         fixed = {found.image_id, ids[0]} - set(q_group)
+        fixed |= {i for i in ids if slam_map.keyframes[i].frame_index < 0} - set(q_group)  # a loaded map's: held
         result = optimize_pose_graph(poses, edges, fixed or {ids[0]}, PoseGraphConfig())
         point_ids = np.array(sorted(rec.point3D_ids()), np.int64)
         refs = np.array([min(el.image_id for el in rec.point3D(int(p)).track.elements) for p in point_ids.tolist()],
