@@ -154,3 +154,17 @@ def test_cli_refusal_writes_nothing(first_run, tmp_path, capsys):
     assert len(err) == 4 and all(line.startswith("slamkit: error: ") for line in err)
     assert "another camera" in err[0] and "not a slamkit run folder" in err[1] and "inside" in err[3]
     assert not out.exists() and _hashes(first_run) == before
+
+
+def test_cli_run_in_a_map_and_eval_under_its_alignment(first_run, tmp_path, capsys):
+    before = _hashes(first_run)
+    out = tmp_path / "second"
+    assert main(["run", SECOND, "--map", str(first_run), "--localize-only", "--max-frames", "30", "--out", str(out),
+                 "-q"]) == 0
+    assert f"map of {first_run.resolve()}: 30 frames posed in it" in capsys.readouterr().err
+    assert main(["eval", str(out), "--json-only"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    prior = result["map_alignment"]
+    assert prior["map_run"] == str(first_run.resolve()) and prior["matched"] == 30
+    assert prior["ate"]["rmse"] < _bound(first_run)
+    assert _hashes(first_run) == before

@@ -160,7 +160,8 @@ def _posed_frames(run_dir: Path, model: pycolmap.Reconstruction, main_segment) -
         frames.append(PosedFrame(index, int(r["frame_id"]), float(t), pose,
                                  by_name.get(f"frame_{index:06d}", -1),
                                  {c: r.get(c) or "" for c in FINGERPRINT_COLUMNS}))
-    missing = set(by_name.values()) - {f.image_id for f in frames}
+    ours = {i for name, i in by_name.items() if not name.startswith("map_")}  # map_*: a loaded map's (map_reuse)
+    missing = ours - {f.image_id for f in frames}
     if missing:
         raise RunFolderError(f"{run_dir / 'sparse'}: {len(missing)} keyframes have no pose in trajectory_tum.txt")
     return frames

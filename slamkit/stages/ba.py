@@ -217,7 +217,8 @@ class BundleAdjuster:
     def adjust_local(self, slam_map: SlamMap, image_id: int, min_tri_angle_deg: float | None = None
                      ) -> BundleAdjustmentResult:
         t0 = time.perf_counter()
-        window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window)]
+        held = held_keyframes(slam_map)  # outside the window: observers held constant
+        window = [image_id] + [i for i, _ in slam_map.covisible(image_id, self.config.local_window) if i not in held]
         removed, excluded = 0, []
         chi2 = self.config.outlier_chi2  # 0: COLMAP's flat bound, unscaled
         bound = chi2 or self.config.max_reproj_error_px ** 2
@@ -311,11 +312,15 @@ class BundleAdjuster:
         t0 = time.perf_counter()
         rec = slam_map.reconstruction
         cfg = pycolmap.BundleAdjustmentConfig()
+        held = held_keyframes(slam_map)
         for i in slam_map.keyframes:
             cfg.add_image(i)
+            if i in held:
+                cfg.set_constant_rig_from_world_pose(i)
         if not (self.config.refine_intrinsics or refine_focal or refine_radial):
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
-        cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+        if not held:  # else the held poses are the gauge
+            cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
             self._options(self.config.global_iterations, refine_focal, refine_radial), cfg, rec).solve()
         merged, completed, filtered = self._maintain(slam_map, None, min_tri_angle_deg)
@@ -387,6 +392,12 @@ def remove_outlier_observations(slam_map: SlamMap, image_ids, chi2: float, scale
                     removed_list.append((image_id, p2, point3D_id))
                 removed += 1
     return removed
+
+
+def held_keyframes(slam_map: SlamMap) -> set[int]:
+    """Keyframes bundle adjustment holds constant: a loaded map's (negative frame indices,
+    :mod:`slamkit.map_reuse`), as ORB-SLAM3's welding BA holds the old map's keyframes; none in a run of its own."""
+    return {i for i, kf in slam_map.keyframes.items() if kf.frame_index < 0}
 
 
 def restore_observations(slam_map: SlamMap, excluded, chi2: float, scaled: bool = True) -> int:
