@@ -9,8 +9,10 @@ finished run wrote (``slam.save`` / ``slamkit run --out``) as the state's first 
   (``session/segment_XX/arrays.npz``: every keyframe's keypoints, descriptors, colours and thumbnail, its
   place-recognition signature, the correspondence graph), and the run's camera (``camera.txt``). The old
   run folder is only read. Its keyframes get negative frame indices (``-1 - k``, k-th in the old run's frame
-  order) and image names ``map_frame_XXXXXX``: they are no frames of this run, whose records are the new
-  source's frames only.
+  order) and image names ``map_`` + theirs (``map_frame_000010``): they are no frames of this run, whose
+  records are the new source's frames only. Bundle adjustment holds them constant
+  (:func:`slamkit.stages.ba.held_keyframes`, as ORB-SLAM3's welding BA holds the old map), culling keeps them
+  and a loop's pose graph holds them.
 - **seeking the map** (:meth:`MapReuse.seek`): while no segment is tracked, each frame is first
   relocalized against the map's keyframes (:class:`~slamkit.stages.relocalizer.Relocalizer`, the
   :data:`SEEK_CANDIDATES` most similar by global signature); found, tracking goes on in the map, in its frame
@@ -59,6 +61,9 @@ if TYPE_CHECKING:  # pragma: no cover
 
 SEEK_CANDIDATES = 5
 """Map keyframes (most similar global signatures first) tried for a frame that looks for the map."""
+SEEK_KEYFRAMES = 10
+"""Covisible keyframes in each candidate's local map while seeking (the tracker's ``local_keyframes`` once
+found): a frame that does not see the map costs every candidate's search, so each is kept small."""
 CAMERA_RTOL = 1e-4
 """Relative tolerance on fx, fy, cx, cy: a source's calibration must equal the map's camera to it."""
 
@@ -155,7 +160,8 @@ def _read_segment(smeta: dict, seg_folder: Path, model: Path) -> tuple[Segment, 
         old[iid] = int(kmeta["frame_index"])
         slam_map.keyframes[iid] = Keyframe(iid, -1 - rank, float(kmeta["timestamp"]), keypoints, features, colors,
                                            thumbnail)
-        slam_map.reconstruction.image(iid).name = f"map_frame_{old[iid]:06d}"
+        image = slam_map.reconstruction.image(iid)
+        image.name = f"map_{image.name}"  # frame_000010 -> map_frame_000010 (map_map_... for a map's map)
     slam_map.next_image_id = int(smeta["next_image_id"])
     slam_map.changed()
     signatures = {int(i): s for i, s in sigs.items() if int(i) in slam_map.keyframes and s is not None}
@@ -176,8 +182,8 @@ class MapReuse:
     def __init__(self, prior: PriorMap, localize_only: bool, relocalizer: RelocalizerConfig):
         self.prior = prior
         self.localize_only = localize_only
-        self.relocalizer = Relocalizer(replace(relocalizer, candidates=max(relocalizer.candidates,
-                                                                           SEEK_CANDIDATES)))
+        self.relocalizer = Relocalizer(replace(relocalizer, candidates=max(relocalizer.candidates, SEEK_CANDIDATES),
+                                               local_keyframes=min(relocalizer.local_keyframes, SEEK_KEYFRAMES)))
         self.found = 0
         """Frames that found the map while no segment was tracked."""
         self.centres = _centres(prior.segment.slam_map, sorted(prior.segment.slam_map.keyframes))
