@@ -10,7 +10,8 @@ their observations still enter the cost. The cost is Ceres' convention,
 
 with rho the robust loss on s: "trivial" (s), "huber" at scale a (s for s <= a^2, else 2 a sqrt(s) - a^2:
 ORB-SLAM's kernel with a = sqrt(5.991) on the whitened error) or "soft_l1" at scale a (2 a^2 (sqrt(1 + s/a^2)
-- 1): COLMAP's default at a = 1 px with w = 1). w_i is the observation's information: 1 (COLMAP's flat
+- 1): COLMAP's default at a = 1 px with w = 1), "cauchy" at scale a (a^2 log(1 + s/a^2): COLMAP's absolute pose
+refinement, :mod:`slamkit.kernels.absolute_pose`). w_i is the observation's information: 1 (COLMAP's flat
 weights) or 1/sigma^2 of its keypoint's pyramid level (ORB-SLAM's).
 
 Parametrization: the rotation is perturbed on the left, R <- exp([omega]x) R, the translation and points
@@ -47,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-LOSSES = {"trivial": 0, "huber": 1, "soft_l1": 2}
+LOSSES = {"trivial": 0, "huber": 1, "soft_l1": 2, "cauchy": 3}
 """Robust losses by name -> the kernel's code."""
 CHI2_2DOF_95 = 5.991
 """The 95 % quantile of chi-square with 2 degrees of freedom: ORB-SLAM's outlier bound on the squared
@@ -106,6 +107,9 @@ def _rho(s, loss, a2):
     if loss == 2:
         q = math.sqrt(1.0 + s / a2)
         return 2.0 * a2 * (q - 1.0), 1.0 / q
+    if loss == 3:
+        q = 1.0 + s / a2
+        return a2 * math.log(q), 1.0 / q
     return s, 1.0
 
 
@@ -486,7 +490,7 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
     obs_weight: (N,) information per observation (1/sigma^2 pixels^-2; None: all 1); pose_fixed (K,) and
     point_fixed (P,) bool: held constant (None: none); gauge: (pose index, axis 0-2) of one translation
     coordinate held besides (COLMAP's TWO_CAMS_FROM_WORLD: the second camera's largest baseline coordinate);
-    loss: "huber", "soft_l1" or "trivial", at ``loss_scale`` on the whitened error; abort: a one-element
+    loss: "huber", "soft_l1", "cauchy" or "trivial", at ``loss_scale`` on the whitened error; abort: a one-element
     integer array, the solve stops before the next iteration once it is non-zero; obs_mask: (N,) bool, the
     observations in the cost (None: all): the others are only measured (their chi2 at the result), as
     ORB-SLAM's second pass leaves out the first pass's outliers and then tests every observation again;
