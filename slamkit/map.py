@@ -19,7 +19,7 @@ import pycolmap
 
 from .camera import Intrinsics
 from .features import Features
-from .point_ids import PointIdCache, track_of
+from .point_ids import PointIdCache, PointPositionCache, track_of
 
 CAMERA_ID = 1
 
@@ -130,7 +130,21 @@ class SlamMap:
         self._observed: set[int] = set()
         self._next_image_id = 1
         self._point3D_ids = PointIdCache()
+        self._xyz = PointPositionCache()
         self._covisible: dict[int, list[tuple[int, int]]] = {}
+
+    def moved(self, point3D_ids=None) -> None:
+        """Forget the cached positions of ``point3D_ids`` (None: of every point): call after anything outside
+        :meth:`set_positions` that moves points (bundle adjustment, a loop correction, normalization)."""
+        self._xyz.forget(point3D_ids)
+
+    def set_positions(self, point3D_ids, xyz: np.ndarray) -> None:
+        """Move points ``point3D_ids`` to ``xyz`` ((M, 3)) in the reconstruction, and in the cached positions."""
+        point3D = self.reconstruction.point3D
+        xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+        for p, X in zip(np.asarray(point3D_ids, np.int64).tolist(), xyz):
+            point3D(p).xyz = X
+        self._xyz.set(self.reconstruction, point3D_ids, xyz)
 
     def changed(self, image_ids=None) -> None:
         """Forget the cached per-keyframe point ids and covisibility: call after anything that adds,
@@ -365,11 +379,8 @@ class SlamMap:
         return self._point3D_ids.get(self.reconstruction, image_id)
 
     def points_xyz(self, point3D_ids) -> np.ndarray:
-        """(M, 3) positions of the given points."""
-        point3D = self.reconstruction.point3D  # (one concatenation: a third faster than an array of rows)
-        ids = point3D_ids.tolist() if isinstance(point3D_ids, np.ndarray) else [int(p) for p in point3D_ids]
-        xyz = [point3D(p).xyz for p in ids]
-        return np.concatenate(xyz).reshape(-1, 3) if xyz else np.empty((0, 3))
+        """(M, 3) positions of the given (existing) points, a new array (cached until :meth:`moved`)."""
+        return self._xyz.get(self.reconstruction, np.asarray(point3D_ids, np.int64))
 
     def num_points_observed(self, image_id: int, min_observers: int = 1) -> int:
         """Map points of the keyframe that at least ``min_observers`` keyframes observe (ORB-SLAM's

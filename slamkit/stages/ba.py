@@ -247,6 +247,7 @@ class BundleAdjuster:
         cfg, points = self._local_config(slam_map, window)
         summary = pycolmap.create_default_bundle_adjuster(
             self._options(c.local_iterations), cfg, slam_map.reconstruction).solve()
+        slam_map.moved(points)  # the variable ones among them moved
         return str(summary.termination_type).split(".")[-1], len(points)
 
     def _solve_local_compiled(self, slam_map: SlamMap, window: list[int]) -> tuple[str, int]:
@@ -318,11 +319,13 @@ class BundleAdjuster:
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         summary = pycolmap.create_default_bundle_adjuster(
             self._options(self.config.global_iterations, refine_focal, refine_radial), cfg, rec).solve()
+        slam_map.moved()
         merged, completed, filtered = self._maintain(slam_map, None, min_tri_angle_deg)
         self._keyframes_at_last_global = slam_map.num_keyframes
         sim = None
         if self.config.normalize if normalize is None else normalize:
             sim = rec.normalize()
+            slam_map.moved()
         return BundleAdjustmentResult("global", slam_map.num_keyframes, rec.num_points3D(),
                                       str(summary.termination_type).split(".")[-1], merged, completed, filtered,
                                       time.perf_counter() - t0, sim)

@@ -393,6 +393,7 @@ class Initializer:
         cfg.set_constant_cam_intrinsics(1)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         pycolmap.create_default_bundle_adjuster(opts, cfg, slam_map.reconstruction).solve()
+        slam_map.moved()
 
 
 def track_window(state: "SlamState", res: "InitResult", tracker, track_frame: Callable[..., "StepResult"],
