@@ -5,9 +5,9 @@ Every kernel (descriptor matching, the epipolar search, pose optimization, loop 
 (``__pycache__/*.nbi``, ``*.nbc``), where every later process finds it. Without this step the first run after an
 install spends about a minute compiling, and says nothing. The warm-up runs the pipeline on a short rendered
 sequence (which calls every kernel of tracking and mapping with the types a real run uses), then on random
-geometry loop verification (a short sequence closes no loop), the pose optimization and the compiled local
+geometry loop verification (a short sequence closes no loop), the pose optimizations and the compiled local
 bundle adjustment with each of its losses, with and without per-observation weights (the default
-``ba.engine`` is Ceres, so the run does not call it); its own timing is printed.
+``ba.engine`` and ``tracker.pose_optimizer`` are Ceres, so the run calls neither); its own timing is printed.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import numpy as np
 def warm_up(frames: int = 30) -> float:
     """Call every numba kernel once (compiling and caching it when no cache is there); seconds taken."""
     from .config import SlamConfig
+    from .kernels.absolute_pose import refine_absolute_pose
     from .loop_verification import LoopVerificationConfig, verify_loop_by_reprojection
     from .pipeline import Slam
     from .pose_optimization import optimize_pose
@@ -38,6 +39,7 @@ def warm_up(frames: int = 30) -> float:
     verify_loop_by_reprojection(K, points, np.eye(4), xy, scales, points, np.eye(4), xy, scales,
                                 LoopVerificationConfig(max_trials=20))
     optimize_pose(np.eye(4), xy, points, scales ** 2, K)
+    refine_absolute_pose(np.eye(4), xy, points, np.ones(n, bool), (500.0, 500.0, 320.0, 240.0))
     _warm_up_local_ba(rng)
     return time.perf_counter() - t
 

@@ -8,6 +8,8 @@ write its output back. ``tests/test_architecture.py`` keeps it that way.
 
 - :mod:`slamkit.kernels.local_ba`: local bundle adjustment, Levenberg-Marquardt with the Schur complement on
   the poses (ORB-SLAM's ``Optimizer::LocalBundleAdjustment``), and the chi-square outlier test.
+- :mod:`slamkit.kernels.absolute_pose`: COLMAP's absolute pose refinement (Cauchy loss, points held) as one call
+  of the local BA kernel.
 - :mod:`slamkit.kernels.pose_optimization`: motion-only pose optimization, ORB-SLAM2's
   ``Optimizer::PoseOptimization`` (rounds of Levenberg-Marquardt, chi-square re-classification), compiled;
   :mod:`slamkit.pose_optimization` checks the input.
