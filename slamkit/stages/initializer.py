@@ -22,7 +22,7 @@ import pycolmap
 
 from ..camera import Intrinsics
 from ..errors import ConfigError, check_fields, native_seed
-from ..geometry import flow_score, parallax_deg, rotation_angle_deg
+from ..kernels.geometry import flow_score, parallax_deg, rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, bundle_adjustment_options, pycolmap_camera
 from ..state import GENERAL, FrameStatus
