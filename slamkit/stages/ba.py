@@ -105,7 +105,7 @@ class BundleAdjustmentConfig:
     ``weighting`` "level". "compiled": the same problem, loss and weights read from the map as arrays
     (:mod:`slamkit.local_ba_problem`) and solved by the compiled kernel (:mod:`slamkit.kernels.local_ba`:
     Levenberg-Marquardt with the Schur complement on the poses, nogil), the solution written back; the outlier
-    test, second pass and track maintenance as with Ceres. Losses trivial, soft_l1 and huber; a map camera
+    test, second pass and track maintenance as with Ceres. Every loss of ``loss``; a map camera
     that is not PINHOLE (self-calibration's radial BA) or ``refine_intrinsics`` falls back to Ceres. Global BA
     is always Ceres'. Measured (benchmarks/bench_local_ba.py, issue 48): every local BA problem of a default run
     solved by both from the same state, interleaved (2 shared cores, load 2-4): ms per solve, compiled (read +
