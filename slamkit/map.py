@@ -138,6 +138,13 @@ class SlamMap:
         :meth:`set_positions` that moves points (bundle adjustment, a loop correction, normalization)."""
         self._xyz.forget(point3D_ids)
 
+    def bundle_adjust(self, options: pycolmap.BundleAdjustmentOptions, config: pycolmap.BundleAdjustmentConfig):
+        """pycolmap's (Ceres') bundle adjustment of ``config`` on this map; returns its summary. The points it
+        may have moved are forgotten by the cached positions (every BA of the map goes through here)."""
+        summary = pycolmap.create_default_bundle_adjuster(options, config, self.reconstruction).solve()
+        self.moved()
+        return summary
+
     def set_positions(self, point3D_ids, xyz: np.ndarray) -> None:
         """Move points ``point3D_ids`` to ``xyz`` ((M, 3)) in the reconstruction, and in the cached positions."""
         point3D = self.reconstruction.point3D

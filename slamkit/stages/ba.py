@@ -245,9 +245,7 @@ class BundleAdjuster:
                                   c.function_tolerance, c.num_threads)
             return res.termination, len(var) + len(const)
         cfg, points = self._local_config(slam_map, window)
-        summary = pycolmap.create_default_bundle_adjuster(
-            self._options(c.local_iterations), cfg, slam_map.reconstruction).solve()
-        slam_map.moved(points)  # the variable ones among them moved
+        summary = slam_map.bundle_adjust(self._options(c.local_iterations), cfg)
         return str(summary.termination_type).split(".")[-1], len(points)
 
     def _solve_local_compiled(self, slam_map: SlamMap, window: list[int]) -> tuple[str, int]:
@@ -317,9 +315,7 @@ class BundleAdjuster:
         if not (self.config.refine_intrinsics or refine_focal or refine_radial):
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-        summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.global_iterations, refine_focal, refine_radial), cfg, rec).solve()
-        slam_map.moved()
+        summary = slam_map.bundle_adjust(self._options(self.config.global_iterations, refine_focal, refine_radial), cfg)
         merged, completed, filtered = self._maintain(slam_map, None, min_tri_angle_deg)
         self._keyframes_at_last_global = slam_map.num_keyframes
         sim = None

@@ -392,8 +392,7 @@ class Initializer:
             cfg.add_image(i)
         cfg.set_constant_cam_intrinsics(1)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-        pycolmap.create_default_bundle_adjuster(opts, cfg, slam_map.reconstruction).solve()
-        slam_map.moved()
+        slam_map.bundle_adjust(opts, cfg)
 
 
 def track_window(state: "SlamState", res: "InitResult", tracker, track_frame: Callable[..., "StepResult"],
