@@ -26,11 +26,11 @@ are <= ~30 keyframes) and back-substitutes the points. The damping and its updat
 Levenberg-Marquardt: lambda diag(J^T J) (diagonal clamped to [1e-6, 1e32]), lambda = 1e-4 at first, on an
 accepted step lambda *= max(1/3, 1 - (2 rho - 1)^3), on a refused one lambda *= nu, nu *= 2; a step must
 lower the cost by 1e-3 of the model's prediction. Every linear solve counts as an iteration (Ceres'
-``max_num_iterations``). Termination as Ceres': CONVERGENCE when an iteration changes the cost by at most
-``function_tolerance`` times the cost, the step is below ``parameter_tolerance`` (relative), or no gradient
-entry exceeds ``gradient_tolerance``; NO_CONVERGENCE after ``max_iterations``; ABORTED when ``abort[0]`` is set
-(checked before each iteration: another thread may set it; the result is the last accepted state); FAILURE for
-input that cannot be solved (the result says why). A step that moves a used observation's point to depth <=
+``max_num_iterations``). Termination as Ceres': CONVERGENCE when a step would change the cost by at most
+``function_tolerance`` times the cost (that step is not taken: Ceres' ``FunctionToleranceReached``), the step
+is below ``parameter_tolerance`` (relative), or no gradient entry exceeds ``gradient_tolerance``; NO_CONVERGENCE
+after ``max_iterations``; ABORTED when ``abort[0]`` is set (checked before each iteration: another thread may
+set it; the result is the last accepted state); FAILURE for input that cannot be solved (the result says why). A step that moves a used observation's point to depth <=
 ``min_depth`` is refused (``behind_camera`` "refuse", ORB-SLAM's test treats such a point as an outlier), or
 that observation's residual is 0 (``behind_camera`` "zero": COLMAP 4's ``ReprojErrorCost`` returns a zero
 residual and Jacobian for a point behind the camera, so Ceres may move points there; the stage uses this to
@@ -434,12 +434,7 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
         new_cost = _cost(R_new, t_new, X_new, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth,
                          zero_behind)
         if np.isfinite(new_cost) and abs(cost - new_cost) <= function_tolerance * cost:
-            if new_cost < cost:
-                R[:] = R_new
-                t[:] = t_new
-                X[:] = X_new
-                cost = new_cost
-            term = _CONVERGENCE
+            term = _CONVERGENCE  # Ceres' rule: the candidate that changes the cost this little is not taken
             break
         rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
         if np.isfinite(new_cost) and rho > _MIN_RELATIVE_DECREASE:
