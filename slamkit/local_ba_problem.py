@@ -93,8 +93,7 @@ def local_problem(slam_map: SlamMap, window: list[int], max_track_length: int) -
             other_p2.append(hit)
     length = np.bincount(np.concatenate(obs_point + other_rows), minlength=P) if P else np.zeros(0, np.int64)
     fixed = (length > max_track_length) if max_track_length > 0 else np.zeros(P, bool)
-    point3D = rec.point3D
-    xyz = np.concatenate([point3D(p).xyz for p in pids.tolist()]).reshape(-1, 3) if P else np.empty((0, 3))
+    xyz = slam_map.points_xyz(pids)
     image_ids = list(window)
     for i, rows, p2 in zip(others, other_rows, other_p2):
         var = ~fixed[rows]  # a held point enters through its observations in the window only
@@ -141,7 +140,5 @@ def write_back(slam_map: SlamMap, problem: LocalProblem, cam_from_world: np.ndar
         T = cam_from_world[k]
         rec.frame(int(problem.image_ids[k])).rig_from_world = pycolmap.Rigid3d(
             pycolmap.Rotation3d(np.ascontiguousarray(T[:3, :3])), np.ascontiguousarray(T[:3, 3]))
-    point3D = rec.point3D
     var = np.flatnonzero(~problem.point_fixed)
-    for p, X in zip(problem.point3D_ids[var].tolist(), points[var]):
-        point3D(p).xyz = X
+    slam_map.set_positions(problem.point3D_ids[var], points[var])

@@ -10,7 +10,6 @@ does not keep (descriptors, keypoint colours, source frame index) lives in :clas
 from __future__ import annotations
 
 import copy
-import heapq
 import math
 from dataclasses import dataclass
 
@@ -19,7 +18,8 @@ import pycolmap
 
 from .camera import Intrinsics
 from .features import Features
-from .point_ids import PointIdCache, track_of
+from .map_graph import graph_pairs  # noqa: F401  (re-exported: merging, session and compact use it)
+from .point_ids import PointIdCache, PointPositionCache, track_of
 
 CAMERA_ID = 1
 
@@ -130,7 +130,28 @@ class SlamMap:
         self._observed: set[int] = set()
         self._next_image_id = 1
         self._point3D_ids = PointIdCache()
+        self._xyz = PointPositionCache()
         self._covisible: dict[int, list[tuple[int, int]]] = {}
+
+    def moved(self, point3D_ids=None) -> None:
+        """Forget the cached positions of ``point3D_ids`` (None: of every point): call after anything outside
+        :meth:`set_positions` that moves points (bundle adjustment, a loop correction, normalization)."""
+        self._xyz.forget(point3D_ids)
+
+    def bundle_adjust(self, options: pycolmap.BundleAdjustmentOptions, config: pycolmap.BundleAdjustmentConfig):
+        """pycolmap's (Ceres') bundle adjustment of ``config`` on this map; returns its summary. The points it
+        may have moved are forgotten by the cached positions (every BA of the map goes through here)."""
+        summary = pycolmap.create_default_bundle_adjuster(options, config, self.reconstruction).solve()
+        self.moved()
+        return summary
+
+    def set_positions(self, point3D_ids, xyz: np.ndarray) -> None:
+        """Move points ``point3D_ids`` to ``xyz`` ((M, 3)) in the reconstruction, and in the cached positions."""
+        point3D = self.reconstruction.point3D
+        xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+        for p, X in zip(np.asarray(point3D_ids, np.int64).tolist(), xyz):
+            point3D(p).xyz = X
+        self._xyz.set(self.reconstruction, point3D_ids, xyz)
 
     def changed(self, image_ids=None) -> None:
         """Forget the cached per-keyframe point ids and covisibility: call after anything that adds,
@@ -365,11 +386,8 @@ class SlamMap:
         return self._point3D_ids.get(self.reconstruction, image_id)
 
     def points_xyz(self, point3D_ids) -> np.ndarray:
-        """(M, 3) positions of the given points."""
-        point3D = self.reconstruction.point3D  # (one concatenation: a third faster than an array of rows)
-        ids = point3D_ids.tolist() if isinstance(point3D_ids, np.ndarray) else [int(p) for p in point3D_ids]
-        xyz = [point3D(p).xyz for p in ids]
-        return np.concatenate(xyz).reshape(-1, 3) if xyz else np.empty((0, 3))
+        """(M, 3) positions of the given (existing) points, a new array (cached until :meth:`moved`)."""
+        return self._xyz.get(self.reconstruction, np.asarray(point3D_ids, np.int64))
 
     def num_points_observed(self, image_id: int, min_observers: int = 1) -> int:
         """Map points of the keyframe that at least ``min_observers`` keyframes observe (ORB-SLAM's
@@ -542,53 +560,3 @@ def max_point3D_id(rec: pycolmap.Reconstruction) -> int:
     a copy is asked for its next id."""
     probe = copy.copy(rec)
     return int(probe.add_point3D(np.zeros(3), pycolmap.Track(), np.zeros(3, np.uint8))) - 1
-
-
-def graph_pairs(slam_map: SlamMap) -> tuple[list[tuple[int, int]], list[np.ndarray]]:
-    """The correspondence graph as image pairs (older, newer) in an order that, replayed with
-    ``SlamMap.add_matches``, gives every keypoint the same correspondence list (same order) as the original.
-
-    Pairs are grouped by the newer image (ascending: each keyframe is matched when it is inserted); within a
-    group the order is recovered from the correspondence lists of the newer image's keypoints, which list the
-    older images in insertion order. Returns (pairs, (M, 2) uint32 matches of each pair).
-    """
-    g = slam_map.graph
-    groups: dict[int, list[int]] = {}
-    for pair_id in g.num_matches_between_all_images():
-        a, b = sorted(pycolmap.pair_id_to_image_pair(pair_id))
-        groups.setdefault(int(b), []).append(int(a))
-    pairs: list[tuple[int, int]] = []
-    for b in sorted(groups):
-        older = sorted(groups[b])
-        if len(older) > 1:
-            older = _insertion_order(g, b, older, slam_map.reconstruction.image(b).num_points2D())
-        pairs.extend((a, b) for a in older)
-    matches = [np.asarray(g.extract_matches_between_images(a, b), np.uint32).reshape(-1, 2) for a, b in pairs]
-    return pairs, matches
-
-
-def _insertion_order(g: pycolmap.CorrespondenceGraph, image_id: int, older: list[int], num_points2D: int
-                     ) -> list[int]:
-    """Order of the pairs (a, image_id), a in ``older``: each keypoint's correspondence list gives a partial
-    order; a topological sort (ties by image id) completes it — unordered pairs never share a list."""
-    after: dict[int, set[int]] = {a: set() for a in older}
-    indegree = dict.fromkeys(older, 0)
-    for j in range(num_points2D):
-        seq = [c.image_id for c in g.extract_correspondences(image_id, j) if c.image_id < image_id]
-        for x, y in zip(seq, seq[1:]):
-            if x != y and y not in after[x]:
-                after[x].add(y)
-                indegree[y] += 1
-    heap = [a for a in older if indegree[a] == 0]
-    heapq.heapify(heap)
-    out = []
-    while heap:
-        a = heapq.heappop(heap)
-        out.append(a)
-        for y in after[a]:
-            indegree[y] -= 1
-            if indegree[y] == 0:
-                heapq.heappush(heap, y)
-    if len(out) != len(older):  # pragma: no cover - contradictory lists cannot come from one insertion order
-        out += [a for a in older if a not in out]
-    return out

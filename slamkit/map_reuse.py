@@ -272,7 +272,7 @@ class MapReuse:
         if sim is None:
             return
         slam_map.reconstruction.transform(sim)
-        slam_map.changed()
+        slam_map.moved()  # every point moved
         state.apply_normalization(seg, float(sim.scale))
         moved = _centres(slam_map, ids)
         self.frame_correction = {"scale": float(sim.scale), "keyframes": len(ids),

@@ -74,3 +74,60 @@ class PointIdCache:
     def cached(self) -> dict[int, np.ndarray]:
         """{image id: array} of the images cached now (a copy of the mapping; for tests)."""
         return dict(self._ids)
+
+
+class PointPositionCache:
+    """3D point positions by point id, as one array: read from pycolmap on first use (one ``Point3D`` object at a
+    time, about 1 us a point) and kept until the point may have moved. Bundle adjustment, the loop correction and
+    normalization move points: they make :class:`~slamkit.map.SlamMap` forget them (``SlamMap.moved``), or write
+    the values they set (``SlamMap.set_positions``, the compiled local BA's write-back). New points get new ids
+    (pycolmap never gives an id twice), so they are read at their first use. A new Reconstruction behind the map
+    (compaction, a loaded session) starts an empty cache."""
+
+    def __init__(self):
+        self._xyz = np.zeros((0, 3))
+        self._known = np.zeros(0, bool)
+        self._owner: pycolmap.Reconstruction | None = None
+
+    def _reserve(self, reconstruction: pycolmap.Reconstruction, top: int) -> None:
+        if self._owner is not reconstruction:  # another Reconstruction: nothing cached holds
+            self._owner = reconstruction
+            self._known[:] = False
+        if top > len(self._known):
+            size = max(top, 2 * len(self._known), 1024)
+            self._xyz = np.concatenate([self._xyz, np.zeros((size - len(self._xyz), 3))])
+            self._known = np.concatenate([self._known, np.zeros(size - len(self._known), bool)])
+
+    def get(self, reconstruction: pycolmap.Reconstruction, point3D_ids: np.ndarray) -> np.ndarray:
+        """(M, 3) positions of existing points ``point3D_ids`` (M,), a new array."""
+        ids = np.asarray(point3D_ids, np.int64).reshape(-1)
+        if not len(ids):
+            return np.empty((0, 3))
+        self._reserve(reconstruction, int(ids.max()) + 1)
+        missing = ids[~self._known[ids]]
+        if len(missing):
+            missing = np.unique(missing)
+            point3D = reconstruction.point3D  # (one concatenation: a third faster than an array of rows)
+            self._xyz[missing] = np.concatenate([point3D(p).xyz for p in missing.tolist()]).reshape(-1, 3)
+            self._known[missing] = True
+        return self._xyz[ids]
+
+    def set(self, reconstruction: pycolmap.Reconstruction, point3D_ids: np.ndarray, xyz: np.ndarray) -> None:
+        """Record that points ``point3D_ids`` were just set to ``xyz`` ((M, 3)) in ``reconstruction``."""
+        ids = np.asarray(point3D_ids, np.int64).reshape(-1)
+        if len(ids):
+            self._reserve(reconstruction, int(ids.max()) + 1)
+            self._xyz[ids] = np.asarray(xyz, np.float64).reshape(-1, 3)
+            self._known[ids] = True
+
+    def forget(self, point3D_ids=None) -> None:
+        """Forget the positions of ``point3D_ids`` (None: of every point); they are read again when asked for."""
+        if point3D_ids is None:
+            self._known[:] = False
+            return
+        ids = np.asarray(point3D_ids, np.int64).reshape(-1)
+        self._known[ids[ids < len(self._known)]] = False
+
+    def cached(self) -> dict[int, np.ndarray]:
+        """{point id: position} of the points cached now (for tests)."""
+        return {int(i): self._xyz[i].copy() for i in np.flatnonzero(self._known)}

@@ -12,6 +12,8 @@ Optimizer: ``scipy.optimize.least_squares`` (trust region, sparse Jacobian) by d
 installed (through scikit-image) while gtsam 4.3.0 (a 34 MB wheel that also requires pytest >= 9 at run time)
 is an optional extra (``pip install slamkit[loop]``); ``PoseGraphConfig(backend="gtsam")`` uses GTSAM's
 Levenberg-Marquardt with sparse Cholesky on ``BetweenFactorSimilarity3`` factors, far faster on large graphs.
+The scipy solve and the Sim(3) algebra are kernels on plain arrays (:mod:`slamkit.kernels.pose_graph`,
+:mod:`slamkit.kernels.sim3`); this module builds their input from keyframe poses and edges.
 """
 
 from __future__ import annotations
@@ -21,45 +23,21 @@ from typing import Collection, Iterable, Literal, Mapping
 
 import numpy as np
 import pycolmap
-from scipy.optimize import least_squares
-from scipy.sparse import csr_matrix
-from scipy.spatial.transform import Rotation
 
 from .errors import ConfigError
+from .kernels.pose_graph import solve_pose_graph
+from .kernels.sim3 import rigid_from_sim3, sim3_decompose, sim3_inverse, sim3_matrix
 
 EdgeKind = Literal["spanning", "covisibility", "loop"]
 
 
 # ------------------------------------------------------------------------------------------------------
-# similarities as 4x4 matrices [[s R, t], [0, 1]]
-
-
-def sim3_matrix(scale: float, rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """(4, 4) float64 similarity ``x -> scale * rotation @ x + translation`` (rotation (3, 3), metres)."""
-    m = np.eye(4)
-    m[:3, :3] = float(scale) * np.asarray(rotation, float)
-    m[:3, 3] = np.asarray(translation, float).reshape(3)
-    return m
-
-
-def sim3_decompose(m: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(scale, rotation (3, 3), translation (3,)) of a (4, 4) similarity matrix."""
-    m = np.asarray(m, float)
-    scale = float(np.cbrt(np.linalg.det(m[:3, :3])))
-    if not scale > 0:
-        raise ConfigError(f"not a similarity: determinant of the linear part is {scale ** 3:.3g}")
-    return scale, m[:3, :3] / scale, m[:3, 3].copy()
+# similarities as 4x4 matrices [[s R, t], [0, 1]] (their algebra: slamkit.kernels.sim3), from pycolmap's
 
 
 def sim3_from_pycolmap(sim: pycolmap.Sim3d) -> np.ndarray:
     """(4, 4) matrix of a ``pycolmap.Sim3d``."""
     return sim3_matrix(sim.scale, sim.rotation.matrix(), sim.translation)
-
-
-def sim3_inverse(m: np.ndarray) -> np.ndarray:
-    """Inverse of a (4, 4) similarity matrix."""
-    s, r, t = sim3_decompose(m)
-    return sim3_matrix(1.0 / s, r.T, -(r.T @ t) / s)
 
 
 def as_matrix(pose) -> np.ndarray:
@@ -74,14 +52,6 @@ def as_matrix(pose) -> np.ndarray:
     if m.shape != (4, 4) or not np.isfinite(m).all():
         raise ConfigError(f"pose: expected a finite 4x4 or 3x4 matrix or a pycolmap Rigid3d/Sim3d, got shape {m.shape}")
     return m
-
-
-def rigid_from_sim3(m: np.ndarray) -> np.ndarray:
-    """The rigid ``cam_from_world`` (4, 4) of a corrected ``S_cw``: rotation R and translation t / s."""
-    s, r, t = sim3_decompose(m)
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = r, t / s
-    return out
 
 
 # ------------------------------------------------------------------------------------------------------
@@ -172,91 +142,6 @@ def loop_edge(query: int, candidate: int, query_pose, candidate_pose, candidate_
     return PoseGraphEdge(int(query), int(candidate), s_qw @ np.linalg.inv(as_matrix(candidate_pose)), weight, "loop")
 
 
-def _unpack(sims: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(n,) scales, (n, 3, 3) rotations, (n, 3) translations of (n, 4, 4) similarities."""
-    s = np.cbrt(np.linalg.det(sims[:, :3, :3]))
-    return s, sims[:, :3, :3] / s[:, None, None], sims[:, :3, 3]
-
-
-class _Problem:
-    """Residuals of a pose graph over perturbations ``(dω, dc, dσ)`` of the free keyframes: ``R = exp(dω) R0``,
-    camera centre ``c = c0 + dc`` (world), ``s = s0 exp(dσ)``, ``t = -s R c``. Moving the centre rather than
-    ``t`` keeps rotation and position decoupled (a rotation does not swing the camera about the world origin),
-    which keeps long loops well conditioned; no singularity for rotation corrections below pi."""
-
-    def __init__(self, ids: list[int], initial: np.ndarray, edges: list[PoseGraphEdge], fixed: set[int]):
-        index = {k: n for n, k in enumerate(ids)}
-        self.s0, self.r0, t0 = _unpack(initial)
-        self.c0 = -np.einsum("nba,nb->na", self.r0, t0) / self.s0[:, None]
-        self.free = np.array([k not in fixed for k in ids])
-        self.slot = np.cumsum(self.free) - 1
-        self.ei = np.array([index[e.i] for e in edges])
-        self.ej = np.array([index[e.j] for e in edges])
-        self.ms, self.mr, self.mt = _unpack(np.stack([e.i_from_j for e in edges]))
-        self.sw = np.sqrt([e.weight for e in edges])
-        self.num_params = 7 * int(self.free.sum())
-
-    def states(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(n,) scales, (n, 3, 3) rotations, (n, 3) centres of all keyframes for parameters x."""
-        s, r, c = self.s0.copy(), self.r0.copy(), self.c0.copy()
-        p = x.reshape(-1, 7)
-        f = self.free
-        r[f] = Rotation.from_rotvec(p[:, :3]).as_matrix() @ r[f]
-        c[f] = c[f] + p[:, 3:6]
-        s[f] = s[f] * np.exp(np.clip(p[:, 6], -20.0, 20.0))  # a wild trial step must stay finite
-        return s, r, c
-
-    def nodes(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(n,) scales, (n, 3, 3) rotations, (n, 3) translations of the ``S_iw`` for parameters x."""
-        s, r, c = self.states(x)
-        return s, r, -s[:, None] * np.einsum("nab,nb->na", r, c)
-
-    def _edge_residuals(self, si, ri, ci, sj, rj, cj) -> np.ndarray:
-        """(E, 7) unweighted residuals ``(rotvec, t, log s)`` of ``S_ij · S_jw · S_iw^-1`` per edge."""
-        ti = -si[:, None] * np.einsum("eab,eb->ea", ri, ci)
-        tj = -sj[:, None] * np.einsum("eab,eb->ea", rj, cj)
-        sa = self.ms * sj  # S_ij · S_jw
-        ra = self.mr @ rj
-        ta = self.ms[:, None] * np.einsum("eab,eb->ea", self.mr, tj) + self.mt
-        re = ra @ np.transpose(ri, (0, 2, 1))  # · S_iw^-1 = (1/si, ri^T, -ri^T ti / si)
-        te = ta - (sa / si)[:, None] * np.einsum("eab,eb->ea", re, ti)
-        return np.concatenate([Rotation.from_matrix(re).as_rotvec(), te, np.log(sa / si)[:, None]], axis=1)
-
-    def _edge_states(self, x: np.ndarray):
-        s, r, c = self.states(x)
-        return [s[self.ei], r[self.ei], c[self.ei], s[self.ej], r[self.ej], c[self.ej]]
-
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        return (self._edge_residuals(*self._edge_states(x)) * self.sw[:, None]).ravel()
-
-    def jacobian(self, x: np.ndarray, step: float = 1e-6) -> csr_matrix:
-        """Sparse (7E, num_params) Jacobian: each edge's 7 x 7 blocks for its two keyframes by central
-        differences, all edges at once (14 x 2 evaluations of the vectorised edge residual)."""
-        base = self._edge_states(x)
-        rows, cols, vals = [], [], []
-        e_rows = 7 * np.arange(len(self.ei))[:, None] + np.arange(7)[None, :]
-        for side, node in ((0, self.ei), (3, self.ej)):
-            free = self.free[node]
-            for k in range(7):
-                delta = np.zeros((len(node), 7))
-                delta[:, k] = step
-                plus, minus = list(base), list(base)
-                plus[side:side + 3] = _perturb(base[side:side + 3], delta)
-                minus[side:side + 3] = _perturb(base[side:side + 3], -delta)
-                d = (self._edge_residuals(*plus) - self._edge_residuals(*minus)) / (2 * step) * self.sw[:, None]
-                rows.append(e_rows[free].ravel())
-                cols.append(np.repeat(7 * self.slot[node][free] + k, 7))
-                vals.append(d[free].ravel())
-        return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(7 * len(self.ei), self.num_params))
-
-
-def _perturb(state: list[np.ndarray], delta: np.ndarray) -> list[np.ndarray]:
-    """(scales, rotations, centres) of edge endpoints moved by per-edge perturbations (E, 7)."""
-    s, r, c = state
-    return [s * np.exp(delta[:, 6]), Rotation.from_rotvec(delta[:, :3]).as_matrix() @ r, c + delta[:, 3:6]]
-
-
 def optimize_pose_graph(poses: Mapping[int, object], edges: Collection[PoseGraphEdge],
                         fixed: int | Collection[int], config: PoseGraphConfig | None = None) -> PoseGraphResult:
     """Optimise the Sim(3) of every keyframe in ``poses`` over ``edges``, keeping ``fixed`` ones (the gauge).
@@ -278,22 +163,14 @@ def optimize_pose_graph(poses: Mapping[int, object], edges: Collection[PoseGraph
 
 def _solve_scipy(ids: list[int], initial: np.ndarray, edges: list[PoseGraphEdge], fixed: set[int],
                  cfg: PoseGraphConfig) -> PoseGraphResult:
-    problem = _Problem(ids, initial, edges, fixed)
-    x0 = np.zeros(problem.num_params)
-    initial_cost = 0.5 * float(np.sum(problem.residuals(x0) ** 2))
-    if problem.num_params == 0:
-        sol_x, nfev, success, message, final = x0, 0, True, "nothing to optimise", initial_cost
-    else:
-        sol = least_squares(problem.residuals, x0, jac=problem.jacobian, method="trf", tr_solver="lsmr",
-                            loss=cfg.loss, f_scale=cfg.loss_scale, max_nfev=cfg.max_evaluations,
-                            ftol=cfg.tolerance, xtol=cfg.tolerance, gtol=cfg.tolerance, x_scale="jac",
-                            # near-exact inner solves: loose LSMR steps stall long loops for hundreds of iterations
-                            tr_options={"atol": 1e-14, "btol": 1e-14, "maxiter": 20 * problem.num_params})
-        sol_x, nfev, success, message = sol.x, int(sol.nfev), bool(sol.success), str(sol.message)
-        final = 0.5 * float(np.sum(problem.residuals(sol_x) ** 2))
-    s, r, t = problem.nodes(sol_x)
-    return _result(ids, [sim3_matrix(s[n], r[n], t[n]) for n in range(len(ids))], initial_cost, final, nfev,
-                   success, message)
+    """:func:`slamkit.kernels.pose_graph.solve_pose_graph` on the graph's arrays."""
+    index = {k: n for n, k in enumerate(ids)}
+    sol = solve_pose_graph(initial, np.array([k not in fixed for k in ids]), np.array([index[e.i] for e in edges]),
+                           np.array([index[e.j] for e in edges]), np.stack([e.i_from_j for e in edges]),
+                           np.array([e.weight for e in edges], np.float64), cfg.loss, cfg.loss_scale,
+                           cfg.max_evaluations, cfg.tolerance)
+    return _result(ids, list(sol.sim_from_world), sol.initial_cost, sol.final_cost, sol.evaluations, sol.success,
+                   sol.message)
 
 
 def _result(ids: list[int], sims: list[np.ndarray], initial_cost: float, final_cost: float, evaluations: int,

@@ -32,7 +32,7 @@ import pycolmap
 from dataclasses import dataclass
 
 from .features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
-from .geometry import rotation_angle_deg
+from .kernels.geometry import rotation_angle_deg
 from .map import SlamMap
 from .stages.initializer import Initializer
 from .stages.motion_model_selection import (GENERAL, ROTATION, MotionModelChoice, MotionModelSelectionConfig,

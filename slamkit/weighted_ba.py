@@ -157,9 +157,8 @@ def weighted_adjust(slam_map: SlamMap, variable_images, variable_points, constan
             continue
         q = poses[i][:4] / np.linalg.norm(poses[i][:4])
         rec.frame(i).rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(q), poses[i][4:].copy())
-    for k in range(len(var_ids)):
-        if k in used_rows:
-            rec.point3D(int(var_ids[k])).xyz = xyz[k]
+    rows = [k for k in range(len(var_ids)) if k in used_rows]
+    slam_map.set_positions(np.asarray(var_ids, np.int64)[rows], xyz[rows])
     slam_map.changed()
     return WeightedSolve(n, len(var_images), len(var_ids), str(summary.termination_type).split(".")[-1],
                          float(summary.initial_cost), float(summary.final_cost))

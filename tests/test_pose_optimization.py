@@ -12,7 +12,8 @@ import pytest
 
 from slamkit.errors import ConfigError
 from slamkit.geometry import rotation_angle_deg
-from slamkit.pose_optimization import PoseOptimizationConfig, _normal_equations, _retract, _robust_cost, optimize_pose
+from slamkit.kernels.pose_optimization import _normal_equations, _retract, _robust_cost
+from slamkit.pose_optimization import PoseOptimizationConfig, optimize_pose
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from bench_pose_optimization import K, synthetic_frame  # noqa: E402  (the benchmark's synthetic frames)
@@ -146,7 +147,7 @@ def test_threads_give_the_serial_results():
     threads at once give bit for bit the serial results."""
     from concurrent.futures import ThreadPoolExecutor
 
-    from slamkit.pose_optimization import _pose_optimization_kernel
+    from slamkit.kernels.pose_optimization import _pose_optimization_kernel
 
     assert _pose_optimization_kernel.targetoptions.get("nogil") is True
     frames = [_frame(seed, n=500, noise_px=1.0, outlier_ratio=0.2) for seed in range(40, 46)]

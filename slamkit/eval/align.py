@@ -21,7 +21,7 @@ import numpy as np
 import pycolmap
 
 from ..errors import ConfigError, SlamkitError
-from ..geometry import rotation_angle_deg
+from ..kernels.geometry import rotation_angle_deg
 from ..types import Trajectory
 
 __all__ = ["ALIGN_KINDS", "Alignment", "AlignmentError", "estimate_alignment"]

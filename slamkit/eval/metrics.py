@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import AssociationError, ConfigError, check_type
-from ..geometry import invert_pose, rotation_angle_deg
+from ..kernels.geometry import invert_pose, rotation_angle_deg
 from ..types import Trajectory
 from .align import Alignment, estimate_alignment
 from .associate import associate

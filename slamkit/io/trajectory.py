@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, FormatError, OutputError, missing_reason
-from ..geometry import pose_from_rows, pose_from_tum, tum_from_pose
+from ..kernels.geometry import pose_from_rows, pose_from_tum, tum_from_pose
 from ..types import Trajectory
 from .atomic import atomic_write_text
 from .ownership import TUM_HEADER  # the first line of every TUM file slamkit writes

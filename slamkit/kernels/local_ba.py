@@ -10,7 +10,8 @@ their observations still enter the cost. The cost is Ceres' convention,
 
 with rho the robust loss on s: "trivial" (s), "huber" at scale a (s for s <= a^2, else 2 a sqrt(s) - a^2:
 ORB-SLAM's kernel with a = sqrt(5.991) on the whitened error) or "soft_l1" at scale a (2 a^2 (sqrt(1 + s/a^2)
-- 1): COLMAP's default at a = 1 px with w = 1). w_i is the observation's information: 1 (COLMAP's flat
+- 1): COLMAP's default at a = 1 px with w = 1), "cauchy" at scale a (a^2 log(1 + s/a^2): COLMAP's absolute pose
+refinement, :mod:`slamkit.kernels.absolute_pose`). w_i is the observation's information: 1 (COLMAP's flat
 weights) or 1/sigma^2 of its keypoint's pyramid level (ORB-SLAM's).
 
 Parametrization: the rotation is perturbed on the left, R <- exp([omega]x) R, the translation and points
@@ -25,11 +26,11 @@ are <= ~30 keyframes) and back-substitutes the points. The damping and its updat
 Levenberg-Marquardt: lambda diag(J^T J) (diagonal clamped to [1e-6, 1e32]), lambda = 1e-4 at first, on an
 accepted step lambda *= max(1/3, 1 - (2 rho - 1)^3), on a refused one lambda *= nu, nu *= 2; a step must
 lower the cost by 1e-3 of the model's prediction. Every linear solve counts as an iteration (Ceres'
-``max_num_iterations``). Termination as Ceres': CONVERGENCE when an iteration changes the cost by at most
-``function_tolerance`` times the cost, the step is below ``parameter_tolerance`` (relative), or no gradient
-entry exceeds ``gradient_tolerance``; NO_CONVERGENCE after ``max_iterations``; ABORTED when ``abort[0]`` is set
-(checked before each iteration: another thread may set it; the result is the last accepted state); FAILURE for
-input that cannot be solved (the result says why). A step that moves a used observation's point to depth <=
+``max_num_iterations``). Termination as Ceres': CONVERGENCE when a step would change the cost by at most
+``function_tolerance`` times the cost (that step is not taken: Ceres' ``FunctionToleranceReached``), the step
+is below ``parameter_tolerance`` (relative), or no gradient entry exceeds ``gradient_tolerance``; NO_CONVERGENCE
+after ``max_iterations``; ABORTED when ``abort[0]`` is set (checked before each iteration: another thread may
+set it; the result is the last accepted state); FAILURE for input that cannot be solved (the result says why). A step that moves a used observation's point to depth <=
 ``min_depth`` is refused (``behind_camera`` "refuse", ORB-SLAM's test treats such a point as an outlier), or
 that observation's residual is 0 (``behind_camera`` "zero": COLMAP 4's ``ReprojErrorCost`` returns a zero
 residual and Jacobian for a point behind the camera, so Ceres may move points there; the stage uses this to
@@ -47,7 +48,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-LOSSES = {"trivial": 0, "huber": 1, "soft_l1": 2}
+LOSSES = {"trivial": 0, "huber": 1, "soft_l1": 2, "cauchy": 3}
 """Robust losses by name -> the kernel's code."""
 CHI2_2DOF_95 = 5.991
 """The 95 % quantile of chi-square with 2 degrees of freedom: ORB-SLAM's outlier bound on the squared
@@ -106,6 +107,9 @@ def _rho(s, loss, a2):
     if loss == 2:
         q = math.sqrt(1.0 + s / a2)
         return 2.0 * a2 * (q - 1.0), 1.0 / q
+    if loss == 3:
+        q = 1.0 + s / a2
+        return a2 * math.log(q), 1.0 / q
     return s, 1.0
 
 
@@ -430,12 +434,7 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
         new_cost = _cost(R_new, t_new, X_new, obs_pose, obs_point, xy, w, active, cam, loss, a2, min_depth,
                          zero_behind)
         if np.isfinite(new_cost) and abs(cost - new_cost) <= function_tolerance * cost:
-            if new_cost < cost:
-                R[:] = R_new
-                t[:] = t_new
-                X[:] = X_new
-                cost = new_cost
-            term = _CONVERGENCE
+            term = _CONVERGENCE  # Ceres' rule: the candidate that changes the cost this little is not taken
             break
         rho = (cost - new_cost) / predicted if predicted > 0 else -1.0
         if np.isfinite(new_cost) and rho > _MIN_RELATIVE_DECREASE:
@@ -486,7 +485,7 @@ def local_bundle_adjustment(cam_from_world: np.ndarray, points: np.ndarray, obs_
     obs_weight: (N,) information per observation (1/sigma^2 pixels^-2; None: all 1); pose_fixed (K,) and
     point_fixed (P,) bool: held constant (None: none); gauge: (pose index, axis 0-2) of one translation
     coordinate held besides (COLMAP's TWO_CAMS_FROM_WORLD: the second camera's largest baseline coordinate);
-    loss: "huber", "soft_l1" or "trivial", at ``loss_scale`` on the whitened error; abort: a one-element
+    loss: "huber", "soft_l1", "cauchy" or "trivial", at ``loss_scale`` on the whitened error; abort: a one-element
     integer array, the solve stops before the next iteration once it is non-zero; obs_mask: (N,) bool, the
     observations in the cost (None: all): the others are only measured (their chi2 at the result), as
     ORB-SLAM's second pass leaves out the first pass's outliers and then tests every observation again;

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..errors import AssociationError, CalibrationError, ConfigError, FormatError, SourceError
-from ..geometry import pose_from_tum
+from ..kernels.geometry import pose_from_tum
 from .base import ImageListSource, select
 from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, resolve_camera

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FormatError
-from ..geometry import pose_from_tum
+from ..kernels.geometry import pose_from_tum
 from .textfiles import parse_float_rows
 
 

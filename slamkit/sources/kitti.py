@@ -20,7 +20,7 @@ import numpy as np
 
 from ..camera import Intrinsics
 from ..errors import CalibrationError, ConfigError, FormatError, SourceError
-from ..geometry import pose_from_rows
+from ..kernels.geometry import pose_from_rows
 from .base import ImageListSource, select
 from .calibration import find_camera_txt, read_camera_txt
 from .folder import image_size, list_images, resolve_camera

@@ -105,7 +105,7 @@ class BundleAdjustmentConfig:
     ``weighting`` "level". "compiled": the same problem, loss and weights read from the map as arrays
     (:mod:`slamkit.local_ba_problem`) and solved by the compiled kernel (:mod:`slamkit.kernels.local_ba`:
     Levenberg-Marquardt with the Schur complement on the poses, nogil), the solution written back; the outlier
-    test, second pass and track maintenance as with Ceres. Losses trivial, soft_l1 and huber; a map camera
+    test, second pass and track maintenance as with Ceres. Every loss of ``loss``; a map camera
     that is not PINHOLE (self-calibration's radial BA) or ``refine_intrinsics`` falls back to Ceres. Global BA
     is always Ceres'. Measured (benchmarks/bench_local_ba.py, issue 48): every local BA problem of a default run
     solved by both from the same state, interleaved (2 shared cores, load 2-4): ms per solve, compiled (read +
@@ -246,8 +246,7 @@ class BundleAdjuster:
                                   c.function_tolerance, c.num_threads)
             return res.termination, len(var) + len(const)
         cfg, points = self._local_config(slam_map, window)
-        summary = pycolmap.create_default_bundle_adjuster(
-            self._options(c.local_iterations), cfg, slam_map.reconstruction).solve()
+        summary = slam_map.bundle_adjust(self._options(c.local_iterations), cfg)
         return str(summary.termination_type).split(".")[-1], len(points)
 
     def _solve_local_compiled(self, slam_map: SlamMap, window: list[int]) -> tuple[str, int]:
@@ -321,13 +320,13 @@ class BundleAdjuster:
             cfg.set_constant_cam_intrinsics(CAMERA_ID)
         if not held:  # else the held poses are the gauge
             cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-        summary = pycolmap.create_default_bundle_adjuster(
-            self._options(self.config.global_iterations, refine_focal, refine_radial), cfg, rec).solve()
+        summary = slam_map.bundle_adjust(self._options(self.config.global_iterations, refine_focal, refine_radial), cfg)
         merged, completed, filtered = self._maintain(slam_map, None, min_tri_angle_deg)
         self._keyframes_at_last_global = slam_map.num_keyframes
         sim = None
         if self.config.normalize if normalize is None else normalize:
             sim = rec.normalize()
+            slam_map.moved()
         return BundleAdjustmentResult("global", slam_map.num_keyframes, rec.num_points3D(),
                                       str(summary.termination_type).split(".")[-1], merged, completed, filtered,
                                       time.perf_counter() - t0, sim)

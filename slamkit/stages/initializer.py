@@ -22,7 +22,7 @@ import pycolmap
 
 from ..camera import Intrinsics
 from ..errors import ConfigError, check_fields, native_seed
-from ..geometry import flow_score, parallax_deg, rotation_angle_deg
+from ..kernels.geometry import flow_score, parallax_deg, rotation_angle_deg
 from ..features import FrameFeatures, MatchingConfig, NearestNeighborMatcher, PairMatcher
 from ..map import SlamMap, bundle_adjustment_options, pycolmap_camera
 from ..state import GENERAL, FrameStatus
@@ -392,7 +392,7 @@ class Initializer:
             cfg.add_image(i)
         cfg.set_constant_cam_intrinsics(1)
         cfg.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-        pycolmap.create_default_bundle_adjuster(opts, cfg, slam_map.reconstruction).solve()
+        slam_map.bundle_adjust(opts, cfg)
 
 
 def track_window(state: "SlamState", res: "InitResult", tracker, track_frame: Callable[..., "StepResult"],

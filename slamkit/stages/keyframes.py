@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import check_fields
-from ..geometry import flow_score, parallax_deg, rotation_angle_deg
+from ..kernels.geometry import flow_score, parallax_deg, rotation_angle_deg
 
 
 @dataclass(frozen=True)

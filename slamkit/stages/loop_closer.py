@@ -409,8 +409,7 @@ class LoopCloser:
         refs = np.array([min(el.image_id for el in rec.point3D(int(p)).track.elements) for p in point_ids.tolist()],
                         np.int64)
         xyz = correct_points(slam_map.points_xyz(point_ids), refs, poses, result)
-        for p, x in zip(point_ids.tolist(), xyz):
-            rec.point3D(p).xyz = x
+        slam_map.set_positions(point_ids, xyz)
         for i in ids:
             rec.frame(i).rig_from_world = rigid_from_matrix(result.cam_from_world[i])
         state.apply_loop_correction(seg, result.scales)
