@@ -165,3 +165,7 @@ def test_window_sweep_equals_binary_searches_ties_included():
     lo, hi = epipolar._window_bounds(t1, np.argsort(t1, kind="stable"), ts, 1.0)
     assert np.array_equal(lo, np.searchsorted(ts, t1 - 1.0, "left"))
     assert np.array_equal(hi, np.searchsorted(ts, t1 + 1.0, "right"))
+    t1[::50] = np.nan  # (not from finite keypoints) numpy's windows: empty, after every number
+    lo, hi = epipolar._window_bounds(t1, np.argsort(t1, kind="stable"), ts, 1.0)
+    assert np.array_equal(lo, np.searchsorted(ts, t1 - 1.0, "left"))
+    assert np.array_equal(hi, np.searchsorted(ts, t1 + 1.0, "right"))

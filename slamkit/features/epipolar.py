@@ -14,7 +14,9 @@ parameter ``t`` is at least ``A_y |sin(t - t_y)|`` with ``A_y = hypot(u.y, v.y)`
 3-vector has a normal of length <= 1). So the keypoints within the band of a line are among those whose
 ``t_y`` is within ``asin(band / A_y)`` of it: a window in the keypoints sorted by ``t_y`` (keypoints near the
 epipole, whose windows are wide, are grouped in rings of ``A_y`` growing by 2^(1/4), each searched with its own
-window), checked exactly afterwards.
+window), checked exactly afterwards. The rings, their windows and the exact tests run in one compiled kernel
+per call (:func:`_pencil_kernel`), and the choice among the candidates (distance, ratio test, one-to-one) in
+another (:func:`_select`), with the numpy steps' results bit for bit.
 """
 
 from __future__ import annotations
