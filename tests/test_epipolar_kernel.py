@@ -20,6 +20,25 @@ K = np.array([[718.0, 0, 613], [0, 718, 185], [0, 0, 1]])
 
 # ---- the reference: the implementation before the compiled ring loop (unchanged but for names) ----
 
+def _ref_apply(M, X):
+    return np.stack([X[:, 0] * m[0] + X[:, 1] * m[1] + X[:, 2] * m[2] for m in M], axis=1)
+
+
+def _ref_line_parameters(y1, y2, lines, R, t, band):
+    e = t / np.linalg.norm(t)
+    if abs(e[2]) > 1e-3:
+        ep = e[:2] / e[2]
+        dx, dy = y2[:, 0] - ep[0], y2[:, 1] - ep[1]
+        a = _ref_apply(R, y1)
+        w = np.sign(t[2]) * (a[:, :2] * t[2] - a[:, 2:3] * t[:2])
+        return (np.arctan2(w[:, 1], w[:, 0]), np.arctan2(dy, dx), np.hypot(dx, dy), 2 * np.pi,
+                max(band, np.tan(np.radians(2.0))))
+    u, v = epipolar._pencil_basis(e)
+    t1 = np.mod(np.arctan2(_ref_apply(v[None], lines)[:, 0], _ref_apply(u[None], lines)[:, 0]), np.pi)
+    a2, b2 = _ref_apply(u[None], y2)[:, 0], _ref_apply(v[None], y2)[:, 0]
+    return t1, np.mod(np.arctan2(-a2, b2), np.pi), np.hypot(a2, b2), np.pi, band
+
+
 def _ref_window(t1, order1, t2, j2, half, period):
     if half >= np.pi / 2 - 1e-9:
         return np.zeros(len(t1), np.int64), np.full(len(t1), len(j2), np.int64), j2
@@ -84,15 +103,15 @@ def reference_candidates(x1, x2, cam2_from_cam1, K, band_px):
     if float(np.linalg.norm(t)) < 1e-12 or len(x1) == 0 or len(x2) == 0:
         return np.empty(0, np.int64), np.empty(0, np.int64)
     Kinv = np.linalg.inv(K)
-    y1 = epipolar._apply(Kinv, np.c_[x1, np.ones(len(x1))])
-    y2 = epipolar._apply(Kinv, np.c_[x2, np.ones(len(x2))])
+    y1 = _ref_apply(Kinv, np.c_[x1, np.ones(len(x1))])
+    y2 = _ref_apply(Kinv, np.c_[x2, np.ones(len(x2))])
     band = band_px / K[0, 0]
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    lines = epipolar._apply(tx @ R, y1)
-    t1, t2, amp, period, base = epipolar._line_parameters(y1, y2, lines, R, t, band)
+    lines = _ref_apply(tx @ R, y1)
+    t1, t2, amp, period, base = _ref_line_parameters(y1, y2, lines, R, t, band)
     ring = np.floor(4 * np.log2(np.maximum(amp / base, 1.0))).astype(np.int64) + (amp >= base)
     L, Y = lines.T.copy(), y2.T.copy()
-    A = epipolar._apply(R, y1).T.copy()
+    A = _ref_apply(R, y1).T.copy()
     near = band * np.hypot(L[0], L[1])
     aa, bb = (A * A).sum(0), (Y * Y).sum(0)
     at, bt = (A * t[:, None]).sum(0), (Y * t[:, None]).sum(0)
@@ -220,3 +239,15 @@ def test_descriptors_at_nan_distance_never_match():
     got = epipolar_match(x1, d1, x2, d2, False, T, K, 40.0)
     assert np.array_equal(got, reference_match(x1, d1, x2, d2, False, T, K, 40.0))
     assert len(got) > 20 and not (got[:, 1] % 3 == 0).any()
+
+
+def test_argsort_with_ties_in_index_order_is_numpys_stable_argsort():
+    rng = np.random.default_rng(9)
+    for n in (0, 1, 2, 17, 1000, 5000):
+        t = rng.integers(-20, 20, n).astype(np.float64) / 4  # many ties
+        t[rng.random(n) < 0.05] = np.nan
+        t[rng.random(n) < 0.05] = -0.0  # equal to 0.0
+        t[rng.random(n) < 0.02] = np.inf
+        order = np.argsort(t)
+        epipolar._ties_in_index_order(t, order)
+        assert np.array_equal(order, np.argsort(t, kind="stable"))

@@ -93,15 +93,32 @@ def _band(lo, hi, js, L, Y, A, near, aa, bb, at, bt, cos_parallel, out_i, out_j,
 
 
 @njit(cache=True, nogil=True)
+def _ties_in_index_order(t, order):
+    """Make an argsort ``order`` of ``t`` (NaN last, as numpy sorts) stable, in place: each run of equal values
+    (or of NaN) in ascending index order."""
+    a, n = 0, order.shape[0]
+    while a < n:
+        b, v = a + 1, t[order[a]]
+        while b < n and (t[order[b]] == v or (np.isnan(t[order[b]]) and np.isnan(v))):
+            b += 1
+        if b - a > 1:
+            order[a:b] = np.sort(order[a:b])
+        a = b
+
+
+@njit(cache=True, nogil=True)
 def _pencil_kernel(t1, order1, t2, by_t2, ring, rings, halves, period, L, Y, A, near, aa, bb, at, bt,
                    cos_parallel):
     """The search of :func:`epipolar_candidates`, ring by ring (``rings``: ascending, ``halves``: each one's
-    window half-width): a ring's keypoints in ``t2`` order (``by_t2``: the stable argsort of ``t2``; ties in
-    index order), repeated at -period, 0, +period (wrap-around), each line's window found by
-    :func:`_window_bounds`, then the exact tests of :func:`_band`. A half-width >= pi / 2: every keypoint of
-    the ring for every line, in index order. Returns ((M,) i, (M,) j), ring by ring, line by line, in window
+    window half-width): a ring's keypoints in ``t2`` order (``by_t2``: an argsort of ``t2``, its ties put in
+    index order here: numpy's stable argsort, about 6 times slower, sorts the same), repeated at -period, 0,
+    +period (wrap-around), each line's window found by :func:`_window_bounds` (``order1``: an argsort of
+    ``t1``, made stable likewise), then the exact tests of :func:`_band`. A half-width >= pi / 2: every
+    keypoint of the ring for every line, in index order. Returns ((M,) i, (M,) j), ring by ring, line by line, in window
     order. (A ring that is windowed has keypoints of finite amp, hence finite ``t2``: no NaN in its ``ts``.)"""
     n1, n2, g = t1.shape[0], t2.shape[0], rings.shape[0]
+    _ties_in_index_order(t1, order1)
+    _ties_in_index_order(t2, by_t2)
     group = np.searchsorted(rings, ring)
     start = np.zeros(g + 1, np.int64)
     for j in range(n2):
@@ -179,7 +196,7 @@ def epipolar_candidates(x1: np.ndarray, x2: np.ndarray, cam2_from_cam1: np.ndarr
         return np.empty(0, np.int64), np.empty(0, np.int64)
     # (small matrix products written out: numpy's matmul of (N, 3) by (3, 3) is slow on some BLAS builds)
     Kinv = np.linalg.inv(K)
-    y1, y2 = _apply(Kinv, np.c_[x1, np.ones(len(x1))]), _apply(Kinv, np.c_[x2, np.ones(len(x2))])
+    y1, y2 = _apply(Kinv, x1), _apply(Kinv, x2)
     band = band_px / K[0, 0]
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     lines = _apply(tx @ R, y1)  # (N1, 3) epipolar lines in image 2, all through the epipole
@@ -197,13 +214,21 @@ def epipolar_candidates(x1: np.ndarray, x2: np.ndarray, cam2_from_cam1: np.ndarr
     rings = np.unique(ring)
     halves = np.array([float(np.arcsin(min(1.0, band / base * 2.0 ** (-0.25 * float(r - 1))))) if r > 0
                        else np.pi for r in rings.tolist()])
-    return _pencil_kernel(t1, np.argsort(t1, kind="stable"), t2, np.argsort(t2, kind="stable"), ring, rings,
-                          halves, float(period), L, Y, A, near, aa, bb, at, bt, _COS_PARALLEL)
+    return _pencil_kernel(t1, np.argsort(t1), t2, np.argsort(t2), ring, rings, halves, float(period), L, Y, A,
+                          near, aa, bb, at, bt, _COS_PARALLEL)
 
 
-def _apply(M: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """X @ M.T for X (N, 3) and M (k, 3), one column at a time."""
-    return np.stack([X[:, 0] * m[0] + X[:, 1] * m[1] + X[:, 2] * m[2] for m in M], axis=1)
+@njit(cache=True, nogil=True)
+def _apply(M, X):
+    """X @ M.T for X (N, 3), or (N, 2) with a third coordinate 1, and M (k, 3): (N, k) float64, each element
+    ``(x0 m0 + x1 m1) + x2 m2`` as numpy computes it column by column (BLAS's matmul would round otherwise)."""
+    out = np.empty((X.shape[0], M.shape[0]))
+    for a in range(X.shape[0]):
+        x0, x1 = X[a, 0], X[a, 1]
+        x2 = X[a, 2] if X.shape[1] == 3 else 1.0
+        for r in range(M.shape[0]):
+            out[a, r] = x0 * M[r, 0] + x1 * M[r, 1] + x2 * M[r, 2]
+    return out
 
 
 def epipolar_match(x1: np.ndarray, desc1: np.ndarray, x2: np.ndarray, desc2: np.ndarray, binary: bool,
