@@ -41,29 +41,25 @@ def _pencil_basis(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, nogil=True)
-def _window_bounds(t1, order1, ts, half):
+def _window_bounds(t1, order1, ts, half, lo, hi):
     """``numpy.searchsorted(ts, t1 - half, "left")`` and ``(ts, t1 + half, "right")`` for sorted ``ts`` without
-    NaN, in one sweep over ``t1`` in its ascending ``order1`` (NaN last, as numpy sorts; the queries ascend
-    too): O(N + M) instead of N binary searches. A NaN in ``t1`` (not from finite keypoints) gets numpy's
-    empty window at the end."""
+    NaN, into ``lo`` and ``hi``, in one sweep over ``t1`` in its ascending ``order1`` (NaN last, as numpy sorts;
+    the queries ascend too): O(N + M) instead of N binary searches. A NaN in ``t1`` (not from finite
+    keypoints) gets numpy's empty window at the end."""
     n, m = t1.shape[0], ts.shape[0]
-    lo = np.empty(n, np.int64)
-    hi = np.empty(n, np.int64)
     a = b = 0
     for k in range(n):
         i = order1[k]
-        if np.isnan(t1[i]):
+        q = t1[i]
+        if np.isnan(q):
             lo[i] = hi[i] = m
             continue
-        q = t1[i] - half
-        while a < m and ts[a] < q:
+        while a < m and ts[a] < q - half:
             a += 1
         lo[i] = a
-        q = t1[i] + half
-        while b < m and ts[b] <= q:
+        while b < m and ts[b] <= q + half:
             b += 1
         hi[i] = b
-    return lo, hi
 
 
 @njit(cache=True, nogil=True)
@@ -134,20 +130,24 @@ def _pencil_kernel(t1, order1, t2, by_t2, ring, rings, halves, period, L, Y, A, 
         by_angle[fill_angle[group[j]]] = j
         fill_angle[group[j]] += 1
     ts, js = np.empty(3 * n2), np.empty(3 * n2, np.int64)
+    lo, hi = np.empty(n1, np.int64), np.empty(n1, np.int64)
     out_i, out_j = np.empty(n2, np.int64), np.empty(n2, np.int64)
     m = 0
     for r in range(g):
         s, n = start[r], start[r + 1] - start[r]
         if halves[r] >= np.pi / 2 - 1e-9:
             js[:n] = by_index[s:s + n]
-            lo, hi = np.zeros(n1, np.int64), np.full(n1, n, np.int64)
+            lo[:] = 0
+            hi[:] = n
         else:
             for k in range(n):
                 j = by_angle[s + k]
                 ts[k], ts[n + k], ts[2 * n + k] = t2[j] - period, t2[j], t2[j] + period
                 js[k] = js[n + k] = js[2 * n + k] = j
-            lo, hi = _window_bounds(t1, order1, ts[:3 * n], halves[r])
-        total = m + (hi - lo).sum()
+            _window_bounds(t1, order1, ts[:3 * n], halves[r], lo, hi)
+        total = m
+        for i in range(n1):
+            total += hi[i] - lo[i]
         if total > out_i.shape[0]:
             grown = max(total, 2 * out_i.shape[0])
             out_i, out_j = np.concatenate((out_i[:m], np.empty(grown - m, np.int64))), \
