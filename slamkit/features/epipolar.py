@@ -110,8 +110,9 @@ def _pencil_kernel(t1, order1, t2, by_t2, ring, rings, halves, period, L, Y, A, 
     index order here: numpy's stable argsort, about 6 times slower, sorts the same), repeated at -period, 0,
     +period (wrap-around), each line's window found by :func:`_window_bounds` (``order1``: an argsort of
     ``t1``, made stable likewise), then the exact tests of :func:`_band`. A half-width >= pi / 2: every
-    keypoint of the ring for every line, in index order. Returns ((M,) i, (M,) j), ring by ring, line by line, in window
-    order. (A ring that is windowed has keypoints of finite amp, hence finite ``t2``: no NaN in its ``ts``.)"""
+    keypoint of the ring for every line, in index order. Returns ((M,) i, (M,) j), ring by ring, line by
+    line, in window order. (A ring that is windowed has keypoints of finite amp, hence finite ``t2``: no NaN
+    in its ``ts``.)"""
     n1, n2, g = t1.shape[0], t2.shape[0], rings.shape[0]
     _ties_in_index_order(t1, order1)
     _ties_in_index_order(t2, by_t2)
