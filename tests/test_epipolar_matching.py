@@ -162,6 +162,10 @@ def test_window_sweep_equals_binary_searches_ties_included():
     rng = np.random.default_rng(4)
     t1 = rng.integers(-6, 7, 500).astype(np.float64)  # integer values: queries equal to window ends
     ts = np.sort(rng.integers(-9, 10, 200).astype(np.float64))
-    lo, hi = epipolar._window_bounds(t1, np.argsort(t1, kind="stable"), ts, 1.0)
-    assert np.array_equal(lo, np.searchsorted(ts, t1 - 1.0, "left"))
-    assert np.array_equal(hi, np.searchsorted(ts, t1 + 1.0, "right"))
+    for nan in (False, True):
+        if nan:
+            t1[::50] = np.nan  # (not from finite keypoints) numpy's windows: empty, after every number
+        lo, hi = np.empty(len(t1), np.int64), np.empty(len(t1), np.int64)
+        epipolar._window_bounds(t1, np.argsort(t1, kind="stable"), ts, 1.0, lo, hi)
+        assert np.array_equal(lo, np.searchsorted(ts, t1 - 1.0, "left"))
+        assert np.array_equal(hi, np.searchsorted(ts, t1 + 1.0, "right"))
