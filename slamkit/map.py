@@ -387,7 +387,8 @@ class SlamMap:
 
     def points_xyz(self, point3D_ids) -> np.ndarray:
         """(M, 3) positions of the given (existing) points, a new array (cached until :meth:`moved`)."""
-        return self._xyz.get(self.reconstruction, np.asarray(point3D_ids, np.int64))
+        ids = point3D_ids if isinstance(point3D_ids, np.ndarray) else np.fromiter(point3D_ids, np.int64)  # a set too
+        return self._xyz.get(self.reconstruction, ids)
 
     def num_points_observed(self, image_id: int, min_observers: int = 1) -> int:
         """Map points of the keyframe that at least ``min_observers`` keyframes observe (ORB-SLAM's

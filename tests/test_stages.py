@@ -356,7 +356,7 @@ def test_tracker_rematches_by_descriptor_when_the_motion_model_pose_is_weak():
     assert res.method == "motion" and "re-matched" not in res.reason and res.num_inliers == 500
     with pytest.raises(ConfigError, match="recheck_inlier_ratio"):
         TrackerConfig(recheck_inlier_ratio=2).validate()
-    with pytest.raises(ConfigError, match="tracker.pose_optimizer must be one of ceres, orb"):
+    with pytest.raises(ConfigError, match="tracker.pose_optimizer must be one of ceres, compiled, orb"):
         SlamConfig().with_overrides(**{"tracker.pose_optimizer": "g2o"})
 
 
