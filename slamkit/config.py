@@ -203,7 +203,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # and its mapper: COLMAP's incremental triangulator, a fixed initialization window, COLMAP's BA filter
     "seed": {"flow_threshold": 0.05, "min_tracked_matches": 50, "init_frames": 20, "loop_closing.enabled": False,
              "mapper": "colmap", "initializer.window_overlap": 0.0, "ba.outlier_chi2": 0.0, "ba.local_passes": 1,
-             "ba.weighting": "none"},
+             "ba.weighting": "none", "ba.engine": "ceres", "tracker.pose_optimizer": "ceres"},
     # fewer features and a smaller local BA for speed
     "fast": {"num_features": 1200, "ba.local_window": 4, "ba.local_iterations": 10, "mapper.neighbors": 3},
     # more features, more keyframes, larger windows

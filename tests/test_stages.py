@@ -256,7 +256,7 @@ def test_triangulation_error_within_tolerance(sideways, exact_map):
     assert rgb.any(axis=1).mean() > 0.9                     # points are coloured
 
 
-@pytest.mark.parametrize("pose_optimizer", ["ceres", "orb"])
+@pytest.mark.parametrize("pose_optimizer", ["ceres", "compiled", "orb"])
 def test_tracker_recovers_pose_by_pnp(sideways, exact_map, pose_optimizer):
     local_map = LocalMap.build(exact_map, 2, num_covisible=5)
     assert len(local_map) > 200

@@ -100,21 +100,18 @@ class BundleAdjustmentConfig:
     from run to run, and over hundreds of BAs the trajectory diverges (benchmarks/HISTORY.md, "Measurements
     moved from docstrings"). -1 is faster on a multi-core machine when determinism does not matter."""
 
-    engine: str = "ceres"
-    """Local BA's solver. "ceres": pycolmap's bundle adjuster (Ceres), or :mod:`slamkit.weighted_ba` with
-    ``weighting`` "level". "compiled": the same problem, loss and weights read from the map as arrays
+    engine: str = "compiled"
+    """Local BA's solver. "compiled" (default): the problem, loss and weights read from the map as arrays
     (:mod:`slamkit.local_ba_problem`) and solved by the compiled kernel (:mod:`slamkit.kernels.local_ba`:
-    Levenberg-Marquardt with the Schur complement on the poses, nogil), the solution written back; the outlier
-    test, second pass and track maintenance as with Ceres. Every loss of ``loss``; a map camera
-    that is not PINHOLE (self-calibration's radial BA) or ``refine_intrinsics`` falls back to Ceres. Global BA
-    is always Ceres'. Measured (benchmarks/bench_local_ba.py, issue 48): every local BA problem of a default run
-    solved by both from the same state, interleaved (2 shared cores, load 2-4): ms per solve, compiled (read +
-    solve + write back) against Ceres (config + solve), 7-Scenes skip 5 55.2 (8.8 + 42.1 + 4.3) against 108.7,
-    KITTI 07 skip 2 23.9 against 42.7, the default sequence 56.4 against 115.1; final costs equal (median
-    ratio 1.00000). Whole runs, compiled against Ceres (seeds 0-2): 7-Scenes skip 5 3.09, 2.83, 2.70 cm
-    against 2.79, 2.97, 2.84; the default sequence 1.96, 1.91, 1.96 mm against 2.09 each; but KITTI 07 skip 2
-    0.439, 0.440, 0.468 m against 0.445, 0.402, 0.380 (0.449 +- 0.010 against 0.409 +- 0.019): not the
-    default until that is understood."""
+    Ceres' Levenberg-Marquardt with the Schur complement on the poses, nogil), the solution written back; the
+    outlier test, second pass and track maintenance as with Ceres. "ceres": pycolmap's bundle adjuster (the
+    ``seed`` preset's), or :mod:`slamkit.weighted_ba` with ``weighting`` "level". Every loss of ``loss``; a map
+    camera that is not PINHOLE (self-calibration's radial BA) or ``refine_intrinsics`` goes to Ceres. Global BA
+    is always Ceres'. The kernel takes Ceres' steps and stops by its rules, so both end on the same state: on the
+    112 local BAs of KITTI 07 at every 2nd frame, solved by both from the same state, 108 agree to 1e-13 and
+    the largest camera gap is 2.4e-4 map units, at half the time (18 against 37 ms a solve, read and write
+    included; benchmarks/bench_local_ba.py). Whole runs: benchmarks/HISTORY.md, "A mapping engine of our
+    own (issue 48)"."""
 
     def validate(self) -> None:
         check_fields(self, "ba", {
