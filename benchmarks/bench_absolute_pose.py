@@ -51,7 +51,7 @@ def record_calls(source: str, frames: int) -> list[tuple]:
 
 def measure(calls: list[tuple]) -> list[dict]:
     rows = []
-    for T0, xy, xyz, inl, cam, iterations, scale, gtol in calls:
+    for T0, xy, xyz, inl, cam, iterations, scale, gtol in calls:  # (T0 as the tracker gives it: a unit quaternion's)
         pcam = pycolmap.Camera(model="PINHOLE", width=1, height=1, params=list(cam))
         opt = pycolmap.AbsolutePoseRefinementOptions()
         opt.refine_focal_length, opt.refine_extra_params = False, False

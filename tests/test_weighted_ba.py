@@ -59,7 +59,8 @@ def test_weighted_solve_moves_nothing_held_and_keeps_rotations_rigid():
     rotation (the quaternion's unit-norm residual)."""
     slam_map, _, poses, _ = pyramid_noise_map(num_keyframes=4, n=300, seed=3, per_observation=True)
     ba = BundleAdjuster(BundleAdjustmentConfig(local_window=6, outlier_chi2=0.0, local_passes=1, min_tri_angle_deg=0.0,
-                                               max_reproj_error_px=1e9, normalize=False, weighting="level"))
+                                               max_reproj_error_px=1e9, normalize=False, weighting="level",
+                                               engine="ceres"))  # slamkit.weighted_ba (pyceres), its gauge
     res = ba.adjust_local(slam_map, 4)
     assert res.termination == "CONVERGENCE"
     for i in (1, 2):

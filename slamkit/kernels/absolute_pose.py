@@ -37,7 +37,9 @@ def refine_absolute_pose(cam_from_world: np.ndarray, xy: np.ndarray, xyz: np.nda
     """``cam_from_world`` ((4, 4) or (3, 4)) refined on the inliers (``inlier_mask``, (N,) bool) of the
     correspondences ``xy`` ((N, 2) undistorted pixels) <-> ``xyz`` ((N, 3) world points, held), through the
     pinhole ``camera`` (fx, fy, cx, cy); COLMAP's problem (see the module docstring). Returns the (4, 4) pose, or
-    None where COLMAP's refinement reports no usable solution (no inlier, a non-finite input)."""
+    None where COLMAP's refinement reports no usable solution (no inlier, a non-finite input). The rotation must
+    be one (orthonormal to rounding): the solver turns it on the left and keeps what is not (pycolmap's own
+    refinement starts from the unit quaternion of the matrix it is given)."""
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
     xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
     mask = np.asarray(inlier_mask, bool).reshape(-1)

@@ -28,7 +28,8 @@ accepted step lambda *= max(1/3, 1 - (2 rho - 1)^3), on a refused one lambda *= 
 lower the cost by 1e-3 of the model's prediction. Every linear solve counts as an iteration (Ceres'
 ``max_num_iterations``). Termination as Ceres': CONVERGENCE when a step would change the cost by at most
 ``function_tolerance`` times the cost (that step is not taken: Ceres' ``FunctionToleranceReached``), the step
-is below ``parameter_tolerance`` (relative), or no gradient entry exceeds ``gradient_tolerance``; NO_CONVERGENCE
+is below ``parameter_tolerance`` (relative), or the gradient is below ``gradient_tolerance``, both measured as Ceres
+measures them on COLMAP's quaternions (:mod:`slamkit.kernels.ceres_norms`); NO_CONVERGENCE
 after ``max_iterations``; ABORTED when ``abort[0]`` is set (checked before each iteration: another thread may
 set it; the result is the last accepted state); FAILURE for input that cannot be solved (the result says why). A step that moves a used observation's point to depth <=
 ``min_depth`` is refused (``behind_camera`` "refuse", ORB-SLAM's test treats such a point as an outlier), or
@@ -47,6 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+
+from .ceres_norms import gradient_max_norm, rotation_step_squared
 
 LOSSES = {"trivial": 0, "huber": 1, "soft_l1": 2, "cauchy": 3}
 """Robust losses by name -> the kernel's code."""
@@ -395,14 +398,7 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
         if abort[0] != 0:
             term = _ABORTED
             break
-        gmax = 0.0
-        for kv in range(Kv):
-            for a in range(6):
-                gmax = max(gmax, abs(bx[kv, a]))
-        for pv in range(Pv):
-            for a in range(3):
-                gmax = max(gmax, abs(by[pv, a]))
-        if gmax <= gradient_tolerance:
+        if gradient_max_norm(R, pose_ids, bx, by) <= gradient_tolerance:  # as Ceres measures it
             term = _CONVERGENCE
             break
         it += 1
@@ -413,9 +409,10 @@ def _local_ba_kernel(R, t, X, obs_pose, obs_point, xy, w, active, cam, loss, a2,
             continue
         step2, x2, predicted = 0.0, float(Kv), 0.0
         for kv in range(Kv):
+            step2 += rotation_step_squared(dx[6 * kv], dx[6 * kv + 1], dx[6 * kv + 2])  # in the quaternion
             for a in range(6):
                 d = dx[6 * kv + a]
-                step2 += d * d
+                step2 += d * d if a >= 3 else 0.0
                 predicted += d * (lam * Du[kv, a] * d - bx[kv, a])
             k = pose_ids[kv]
             x2 += t[k, 0] ** 2 + t[k, 1] ** 2 + t[k, 2] ** 2
