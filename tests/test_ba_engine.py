@@ -91,11 +91,11 @@ def test_a_window_that_is_the_whole_map_holds_the_gauge():
         assert np.abs(after1[j] - after2[j]).max() < 1e-6, j
 
 
-def test_the_engine_is_a_checked_option_compiled_by_default_and_ceres_in_the_seed_preset():
-    assert SlamConfig().ba.engine == "compiled" and SlamConfig().tracker.pose_optimizer == "compiled"
+def test_the_engine_is_a_checked_option_and_ceres_by_default_and_in_the_seed_preset():
+    assert SlamConfig().ba.engine == "ceres" and SlamConfig().tracker.pose_optimizer == "ceres"
     seed = SlamConfig.preset("seed")  # COLMAP's machinery end to end, the source paper's design
     assert seed.ba.engine == "ceres" and seed.tracker.pose_optimizer == "ceres"
-    assert SlamConfig().with_overrides(**{"ba.engine": "ceres"}).ba.engine == "ceres"
+    assert SlamConfig().with_overrides(**{"ba.engine": "compiled"}).ba.engine == "compiled"
     with pytest.raises(ConfigError, match="ba.engine"):
         BundleAdjustmentConfig(engine="g2o").validate()
     for loss in ("trivial", "soft_l1", "cauchy", "huber"):  # every BA loss has the compiled engine's kernel

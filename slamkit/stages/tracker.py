@@ -79,12 +79,13 @@ class TrackerConfig:
     or ends between two frames moves the projections beyond the search radius; RANSAC on the few matches left can
     then find a wrong pose that the small local-map radius confirms with a few inliers (the city block's
     corner: 156 inliers and a pose 0.6 m off, against 847 inliers and the right pose by descriptor)."""
-    pose_optimizer: str = "compiled"
-    """The motion-only refinement of the local-map tracking: "compiled" (default: COLMAP's ``RefineAbsolutePose``
+    pose_optimizer: str = "ceres"
+    """The motion-only refinement of the local-map tracking: "compiled" (COLMAP's ``RefineAbsolutePose``
     problem on the inliers, Cauchy at 1 px, every observation weighted alike, solved by
     :func:`~slamkit.kernels.absolute_pose.refine_absolute_pose` with Ceres' steps: the same pose as pycolmap's to
     1e-13 on most real calls, in a third of the time, benchmarks/bench_absolute_pose.py; a camera with distortion
-    parameters goes to pycolmap), "ceres" (``pycolmap.refine_absolute_pose``, the ``seed`` preset's) or "orb"
+    parameters goes to pycolmap; not the default: see ``ba.engine``), "ceres" (default,
+    ``pycolmap.refine_absolute_pose``) or "orb"
     (:func:`~slamkit.pose_optimization.
     optimize_pose` on every match, ORB-SLAM2's PoseOptimization: keypoint-level weights, 4 rounds re-classing
     by chi2). The inliers after the refinement are ``max_error_px`` ones either way. "orb" on the suite's
