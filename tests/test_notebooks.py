@@ -43,7 +43,7 @@ def inject_parameters(nb, values: dict) -> None:
 def test_notebooks_found():
     names = [p.name for p in NOTEBOOKS]
     assert names == ["01_quickstart.ipynb", "02_step_through.ipynb", "04_features_and_matching.ipynb",
-                     "05_initialization_and_ba.ipynb"]
+                     "05_initialization_and_ba.ipynb", "06_map_reuse.ipynb"]
 
 
 def test_every_notebook_says_what_it_teaches_and_how_long():
@@ -147,8 +147,10 @@ def check_outputs(stem: str, nb, out: Path) -> None:
     pngs = sum("image/png" in o.get("data", {}) for c in nb.cells for o in c.get("outputs", []))
     views = check_views_have_pictures(nb)
     bars = check_bars_complete(nb)
-    assert bars == {"01_quickstart": 1, "02_step_through": 5}.get(stem, 0), bars  # 02: mappers 2, loop, app.run 2
-    assert views == {"01_quickstart": 1, "02_step_through": 2}.get(stem, 0), views  # 02: the loop and kept map
+    # 02: mappers 2, loop, app.run 2; 06: the first walk, the second three ways
+    assert bars == {"01_quickstart": 1, "02_step_through": 5, "06_map_reuse": 4}.get(stem, 0), bars
+    # 02: the loop and kept map; 06: both walks in one view
+    assert views == {"01_quickstart": 1, "02_step_through": 2, "06_map_reuse": 1}.get(stem, 0), views
     if stem in ("01_quickstart", "02_step_through"):
         assert (out / "trajectory_tum.txt").is_file() and (out / "sparse").is_dir()
         page = (out / "map.html").read_text()
@@ -256,6 +258,26 @@ def check_outputs(stem: str, nb, out: Path) -> None:
         assert len(matches) >= 10 and min(matches) >= 2 * 50, matches
         if importlib.util.find_spec("torch") is None:
             assert "skipped: learned features need torch: pip install" in text
+    if stem == "06_map_reuse":
+        posed = re.search(r"second walk: (\d+) of (\d+) frames posed", text)
+        assert posed and int(posed.group(1)) >= 0.98 * int(posed.group(2)), text
+        loaded = re.search(r"the map after it: (\d+) keyframes, (\d+) points \(loaded: (\d+), (\d+)\)", text)
+        assert loaded and loaded.group(1) == loaded.group(3) and loaded.group(2) == loaded.group(4)  # nothing added
+        under, own = (float(v) for v in re.search(r"under the first run's alignment: RMSE ([0-9.]+) cm over \d+ "
+                                                   r"frames \(the first walk's own ATE: ([0-9.]+) cm\)", text).groups())
+        assert under < max(3 * own, 1.0)  # "of the order of the first walk's own ATE (millimetres)"
+        view = re.search(r"in the view: (\d+) map points, (\d+) keyframes, .* the second walk's (\d+) frames", text)
+        assert view and int(view.group(1)) > 1000 and int(view.group(3)) == int(posed.group(2))
+        table = next(c for c in nb.cells if c.cell_type == "code" and c.source.startswith("runs = {"))
+        plain = table.outputs[-1]["data"]["text/plain"]
+        rows = {name: [float(v) for line in re.findall(rf"^{name}\s+(.*?)\s*\\?$", plain, re.M) for v in line.split()]
+                for name in ("localize-only", "mapping", "no map")}  # the blocks pandas wraps the table into, joined
+        assert all(len(r) == 4 for r in rows.values()), plain
+        assert all(r[0] >= 98 for r in rows.values()), rows  # posed %
+        assert rows["localize-only"][1] == 0 and rows["mapping"][1] > 0  # keyframes added
+        assert rows["localize-only"][2] < 1.0 and rows["mapping"][2] < 1.0  # cm under the first run's alignment
+        assert rows["no map"][2] > 10 * max(rows["mapping"][2], 0.1)  # "off by tens of centimetres"
+        assert all(r[3] < 1.0 for r in rows.values())  # a good shape after its own Sim(3)
     if stem == "05_initialization_and_ba":
         assert "inliers of E in front of both cameras" in text and pngs >= 2
         rot = float(re.search(r"relative rotation error ([0-9.]+) deg", text).group(1))

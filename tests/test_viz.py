@@ -297,6 +297,52 @@ def test_load_saved_run_and_export_html(run, tmp_path):
         loaded.close()
 
 
+def test_another_path_through_the_map(run):
+    """add_path draws another walk through the map shown (issue 49: a second walk localized in a saved run's map):
+    its line and a dot at every frame at exactly the given map positions, in its colour, under the view's transform
+    like the map's own path; the legend and the picture list it; Reset camera frames it with the map, even where it
+    leaves the map's box; hidden with the path; gone when another map is shown."""
+    from matplotlib.figure import Figure
+
+    from slamkit.viz.server import ViewerError
+    from slamkit.viz.static_twin import _project, draw_map_from_camera, map_picture
+
+    view = MapView(server=run["view"].server, name="other-path")
+    with pytest.raises(ViewerError, match="no map shown yet"):
+        view.add_path(np.zeros((3, 3)), "too early")
+    view.load_run(run["dir"])
+    extent = view._map.map_extent
+    walk = run["slam"].trajectory().positions[::2] + np.array([0.8 * extent, 0.0, 0.0])  # partly beside the map
+    color = (0.2, 0.4, 0.6)
+    view.add_path(walk, "second walk", color)
+    scene = scene_objects(view)
+    line, dots = scene["/meshcat/other-path/path/other0/line"], scene["/meshcat/other-path/path/other0/dots"]
+    v = attribute(line, "position").T
+    assert v.shape == (2 * (len(walk) - 1), 3)
+    assert np.allclose(v[0::2], walk[:-1], atol=1e-6 * extent) and np.allclose(v[1::2], walk[1:], atol=1e-6 * extent)
+    assert np.allclose(attribute(line, "color").T, color, atol=1e-6)
+    assert np.allclose(attribute(dots, "position").T, walk, atol=1e-6 * extent)
+    assert np.allclose(attribute(dots, "color").T, color, atol=1 / 255)
+    assert view.scene_counts()["other_paths"] == 1
+    assert view.legend_items()[-1] == ("#336699", "second walk") and "second walk" in view.iframe_html()
+    # framed with the map: every frame of the walk in front of the home camera and inside the viewer
+    view.reset_camera()
+    T = view.display_from_map
+    ndc, depth = _project(walk @ T[:3, :3].T + T[:3, 3], np.asarray(view._out.camera_position, float), view.aspect)
+    assert (depth > 0).all() and np.abs(ndc).max() <= 1.0, np.abs(ndc).max()
+    assert draw_map_from_camera(Figure().add_subplot(), view)["other_paths"] == len(walk)
+    assert map_picture(view, 300)[:4] == b"\x89PNG"
+    # hidden with the path: neither the legend nor the picture lists it
+    view.configure(show_path=False)
+    assert all(isinstance(k, str) for k in view.legend_items())
+    assert draw_map_from_camera(Figure().add_subplot(), view)["other_paths"] == 0
+    view.configure(show_path=True)
+    # another map: the walk belonged to the map it was drawn through
+    view.show(state_from_run(run["dir"]))  # read again: another Reconstruction, another map
+    assert not any("/path/other" in p for p in scene_objects(view))
+    assert view.scene_counts().get("other_paths", 0) == 0 and "second walk" not in view.iframe_html()
+
+
 def test_view_settings_clip_track_and_toggles(run):
     slam, view = run["slam"], run["view"]
     m = slam.slam_map

@@ -13,14 +13,16 @@ and sends the result (:mod:`.sender`) as objects built by :mod:`.scene`:
   small, every point is read again.
 - Frustums, path and viewing directions are one ``LineSegments`` object each (thousands of vertices, a few
   kB), re-sent when the keyframes move; the current frame is a fixed frustum moved by ``set_transform``.
+- Other camera paths through the map (a second walk localized in a saved run's map) are a line and dots in one
+  colour each (:meth:`MapView.add_path`), drawn with the path.
 
 The map is shown in a display frame (x right, y forward, z up of the first keyframe's camera) centred and
 scaled so it spans about six units (one ``set_transform`` of the root), refitted when the map outgrows it
 or is normalized (only the frustums are re-sent then). The view follows the camera: when the current frame or
 the newest keyframe nears the viewer's edge (:data:`FOLLOW_BOX`), it refits and puts the viewer's camera home
 again (above the path, looking at the map's centre); "Reset camera" does the same at once. Points are coloured
-by their height (or in their image colours: ``ViewSettings.color_by``); the legend, under the viewer, lists
-only what the view draws.
+by their height (or in their image colours: ``ViewSettings.color_by``); the legend (:mod:`.legend`), under the
+viewer, lists only what the view draws.
 """
 
 from __future__ import annotations
@@ -37,12 +39,13 @@ from IPython.display import HTML
 
 from ..io import atomic_write_text
 from .diff import KeyframeChanges, PointsRead, diff_keyframes, diff_points
-from .scene import (BACKGROUND_RADIUS, CURRENT_COLOR, DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, HEIGHT_STOPS, LOOP_COLOR,
-                    TRACK_COLOR, display_from_map, hex_to_rgb255, recency_colors, screen_box)
+from .legend import LEGEND, css_color, legend_html, legend_text
+from .scene import (BACKGROUND_RADIUS, CURRENT_COLOR, DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, OTHER_PATH_COLOR, TRACK_COLOR,
+                    display_from_map, hex_to_rgb255, recency_colors, screen_box)
 from .sender import SceneSender
 from .server import MeshcatServer, ViewerError
 from .settings import ViewSettings
-from .shown import ShownMap
+from .shown import OtherPath, ShownMap
 from .snapshot import (MapState, read_camera, read_dirty_points, read_every_point, read_poses, state_from_run,
                        state_from_slam)
 
@@ -60,40 +63,6 @@ FOLLOW_BOX = 0.92
 """The view reframes when a newest frame is seen beyond this fraction of the way from the viewer's centre to
 its edge (normalized device coordinates; the home camera frames the map and every camera within 0.85): the
 camera stays inside the view, clear of its edges."""
-
-
-def legend_text() -> str:
-    """What the colours of the 3D view mean (one line, plain text)."""
-    return ("map points coloured by height (dark blue low → yellow high) or in their image colours · keyframe "
-            "frustums and camera path from green (first) through yellow to red (last) · current frame blue · "
-            "selected track magenta · loop closures cyan · drag to orbit, scroll to zoom")
-
-
-def _css(rgb: tuple[float, float, float]) -> str:
-    return "#%02x%02x%02x" % tuple(int(round(255 * c)) for c in rgb)
-
-
-LEGEND = {
-    "points-height": ("linear-gradient(90deg,{})".format(",".join(_css(c / 255) for c in HEIGHT_STOPS)),
-                      "points by height: low → high"),
-    "points-image": ("linear-gradient(90deg,#b08060,#6080b0,#c0c0a0)", "points in their image colours"),
-    "keyframes": ("linear-gradient(90deg,{},{},{})".format(
-        *(_css(c) for c in recency_colors(np.array([0.0, 0.5, 1.0])))), "keyframes and path: first → last"),
-    "current": (_css(CURRENT_COLOR), "current frame"),
-    "track": (_css(TRACK_COLOR), "selected track"),
-    "loops": (_css(LOOP_COLOR), "loop closure"),
-}
-"""Legend entry -> (CSS colour, meaning) of each colour of the 3D view; a view lists only what it draws
-(:meth:`MapView.legend_items`)."""
-
-
-def legend_html(items=("points-height", "keyframes", "current")) -> str:
-    """The colour legend of the 3D view as a small HTML box (swatches and words) for the entries ``items``
-    (keys of :data:`LEGEND`)."""
-    spans = "".join(f'<span style="white-space:nowrap;margin-right:8px"><span style="display:inline-block;'
-                    f'width:18px;height:4px;vertical-align:middle;background:{LEGEND[k][0]}"></span> '
-                    f'{html.escape(LEGEND[k][1])}</span> ' for k in items)
-    return f'<div class="slamkit-legend" style="font:11px sans-serif;line-height:1.5">{spans}</div>'
 
 
 def captioned_html(page: str, title: str, caption: str, legend=("points-height", "keyframes", "current")) -> str:
@@ -246,10 +215,10 @@ class MapView:
         legend_box = f'<div style="max-width:{width}px;padding:2px 0">{legend_html(self.legend_items())}</div>'
         return f"<div>{box}{legend_box}</div>"
 
-    def legend_items(self) -> list[str]:
+    def legend_items(self) -> list[str | tuple[str, str]]:
         """The legend entries (keys of :data:`LEGEND`) of what this view draws with its settings: the
         points' colouring, keyframes and path, the current frame, and a selected track or loop closures only
-        when the scene holds one."""
+        when the scene holds one; then a (CSS colour, label) pair for each other path (:meth:`add_path`)."""
         s, counts = self.settings, self._out.counts
         items = [f"points-{s.color_by}"] if s.show_points else []
         if s.show_keyframes or s.show_path:
@@ -260,7 +229,7 @@ class MapView:
             items.append("track")
         if s.show_path and counts.get("loops", 0):
             items.append("loops")
-        return items
+        return items + [(css_color(o.color), o.label) for o in self._map.other_paths if s.show_path]
 
     def display(self, height: int = 480) -> None:
         """Show the live viewer, then the same map as a picture (a PNG: shown untrusted, without a kernel, on a
@@ -325,6 +294,17 @@ class MapView:
         stats = self.show(state_from_run(run_dir))
         self.reset_camera()
         return stats
+
+    def add_path(self, centers, label: str, color: tuple[float, float, float] = OTHER_PATH_COLOR) -> None:
+        """Draw another camera path through the map shown, in one ``color`` (RGB in [0, 1]), listed in the legend
+        and the picture as ``label``: e.g. a second walk localized in this saved run's map (``centers``: (N, 3)
+        camera centres in the map's frame, map units, in time order, such as ``slam.trajectory().positions``). It
+        stays until the view shows another map; call :meth:`reset_camera` to frame it with the map."""
+        if self._map.key is None:
+            raise ViewerError("no map shown yet: draw one (load_run, update) before adding a path through it")
+        self._map.other_paths.append(OtherPath(str(label), np.asarray(centers, np.float64).reshape(-1, 3).copy(),
+                                               tuple(float(c) for c in color)))
+        self._out.send_other_paths(self._map, self.settings)
 
     def show(self, state: MapState | None) -> UpdateStats:
         """Draw ``state`` (None clears the map), sending only what differs from what is in the scene:

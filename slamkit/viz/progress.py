@@ -9,8 +9,12 @@ elapsed time only: a rate would be a second speed beside the one a notebook defi
 from __future__ import annotations
 
 import sys
+from typing import TYPE_CHECKING
 
 from tqdm.std import tqdm
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..pipeline import Slam
 
 BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar:30}| {n_fmt}/{total_fmt} {unit}s [{elapsed} elapsed]"
 
@@ -29,4 +33,21 @@ def close_early(bar: tqdm, desc: str) -> None:
     bar.close()
 
 
-__all__ = ["progress_bar", "close_early", "BAR_FORMAT"]
+def run_with_bar(slam: "Slam", desc: str = "SLAM") -> list:
+    """``slam.run()`` (every frame, then the final global bundle adjustment) with a :func:`progress_bar` over its
+    frames, moved on by one of the pipeline's callbacks at every step and closed when the run ends; returns the
+    step results."""
+    bar = progress_bar(len(slam), "frame", desc)
+
+    def advance(_slam, _result) -> None:
+        bar.update(1)
+
+    slam.callbacks.append(advance)
+    try:
+        return slam.run()
+    finally:
+        slam.callbacks.remove(advance)
+        bar.close()
+
+
+__all__ = ["progress_bar", "close_early", "run_with_bar", "BAR_FORMAT"]

@@ -354,6 +354,24 @@ def loop_band_object(edges: np.ndarray, size: float, per_edge: int = 48) -> mg.P
     return points_object(xyz, np.tile(np.array(LOOP_RGB), (len(xyz), 1)), size)
 
 
+OTHER_PATH_COLOR = (0.0, 0.0, 0.0)
+"""The default colour of another path drawn through the map (black: none of the map's own colours)."""
+
+
+def other_path_objects(centers: np.ndarray, color: tuple[float, float, float], size: float
+                       ) -> tuple[mg.LineSegments | None, mg.Points]:
+    """Another camera path in one ``color`` (RGB in [0, 1]): a line through its centers (N, 3), map units in time
+    order (None when N < 2), and a dot of ``size`` viewer units at every frame (WebGL lines are 1 px wide whatever
+    their width: the dots make it stand out)."""
+    c = np.asarray(centers, np.float64).reshape(-1, 3)
+    line = None
+    if len(c) >= 2:
+        v = np.stack([c[:-1], c[1:]], axis=1).reshape(-1, 3)
+        line = lines_object(v, np.tile(np.array(color, np.float32), (len(v), 1)))
+    rgb = np.tile(np.round(255 * np.asarray(color, np.float64)), (len(c), 1))
+    return line, points_object(c, rgb, size)
+
+
 def track_point_object(xyz: np.ndarray, size: float) -> mg.Points:
     """The tracked point xyz (3,) as a single large point."""
     return points_object(xyz[None], np.array([TRACK_POINT_RGB]), size)
@@ -366,4 +384,4 @@ __all__ = ["DISPLAY_FROM_OPENCV", "DISPLAY_EXTENT", "BACKGROUND_RADIUS", "CURREN
            "FIT_PERCENTILES",
            "display_from_map", "keyframes_object", "path_object", "path_vertex_times", "directions_object",
            "current_frame_object", "track_lines_object", "track_point_object",
-           "loop_edges_object", "loop_band_object"]
+           "loop_edges_object", "loop_band_object", "OTHER_PATH_COLOR", "other_path_objects"]

@@ -3,9 +3,9 @@
 :class:`SceneSender` owns the view's node ``/meshcat/<name>`` and the few scene-wide settings (background,
 grid, the viewer's camera). It draws each part of a :class:`~slamkit.viz.shown.ShownMap` with the objects
 of :mod:`.scene` and keeps what the scene holds (point groups, counts): paths are relative to the view's
-node — ``points/kf000012``, ``keyframes/geom``, ``path/geom``, ``directions/geom``, ``current/frame``,
-``track/lines``, ``track/point``. Every command goes through it, so it counts what one update sent
-(objects and geometry bytes) and what was sent since the view was created.
+node — ``points/kf000012``, ``keyframes/geom``, ``path/geom``, ``path/other0/line``, ``path/other0/dots``,
+``directions/geom``, ``current/frame``, ``track/lines``, ``track/point``. Every command goes through it, so it
+counts what one update sent (objects and geometry bytes) and what was sent since the view was created.
 """
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ import numpy as np
 
 from .scene import (BACKGROUND_RADIUS, background_object, current_frame_object, directions_object, display_from_map,
                     geometry_bytes, height_colors, home_camera_position, keyframes_object, loop_band_object,
-                    loop_edges_object, map_heights, path_object, path_vertex_times, points_object, recency_colors,
-                    track_lines_object, track_point_object)
+                    loop_edges_object, map_heights, other_path_objects, path_object, path_vertex_times, points_object,
+                    recency_colors, track_lines_object, track_point_object)
 from .settings import ViewSettings
 from .shown import ShownMap
 
@@ -169,6 +169,18 @@ class SceneSender:
             self.delete("path/loops")
             self.delete("path/loop_band")
         self.counts["loops"] = int(len(shown.loop_edges))
+        self.send_other_paths(shown, settings)
+
+    def send_other_paths(self, shown: ShownMap, settings: ViewSettings) -> None:
+        """The other paths drawn through the map (:attr:`ShownMap.other_paths`), each a line and a dot at every
+        frame in its colour, under the path (shown and hidden with it, not clipped: they are no frames of this
+        map's run). The dots are 1.5 map points wide (their size is in viewer units: re-sent on a refit)."""
+        for i, other in enumerate(shown.other_paths):
+            line, dots = other_path_objects(other.centers, other.color, 1.5 * shown.point_size_units(settings))
+            if line is not None:
+                self.set_object(f"path/other{i}/line", line)
+            self.set_object(f"path/other{i}/dots", dots)
+        self.counts["other_paths"] = len(shown.other_paths)
 
     def send_directions(self, shown: ShownMap, settings: ViewSettings) -> None:
         """Viewing directions: a segment along each keyframe's optical axis (3 frustum depths long)."""

@@ -2,13 +2,15 @@
 
 :class:`ShownMap` holds what was last read and sent for one map — keyframe ids, times and poses, the
 camera path, the current frame, the points (a :class:`~slamkit.viz.diff.PointStore`), the last full
-observation lists of the keyframes and the display fit — and derives the geometry the scene draws from it
+observation lists of the keyframes, the display fit and other paths drawn through the map (:class:`OtherPath`) —
+and derives the geometry the scene draws from it
 (keyframe poses and centres, recency fractions, the keyframes and times inside a clip range, the fit).
 No meshcat and no server: the sender draws from it.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -18,6 +20,19 @@ from .diff import PointStore
 from .scene import (DISPLAY_EXTENT, DISPLAY_FROM_OPENCV, Camera, compute_fit, display_from_map, map_heights,
                     nearest_camera_distance, time_fractions, view_centering, world_from_cam)
 from .settings import ViewSettings
+
+
+@dataclass(frozen=True, eq=False)
+class OtherPath:
+    """Another camera path drawn through the map shown, in one colour: e.g. a second walk localized in a saved
+    run's map (``slamkit run --map``), whose positions are in that map's frame and scale."""
+
+    label: str
+    """What it is, for the legend and the picture's title."""
+    centers: np.ndarray
+    """(N, 3) camera centres in the map's frame, map units, in time order."""
+    color: tuple[float, float, float]
+    """RGB in [0, 1]."""
 
 
 class ShownMap:
@@ -53,6 +68,8 @@ class ShownMap:
         self.camera: Camera | None = None
         self.height_range: tuple[float, float] = (0.0, 1.0)
         """(low, high) map units: the 5-95 % range of the points' heights at the last fit (their colour scale)."""
+        self.other_paths: list[OtherPath] = []
+        """Other camera paths drawn through this map, in the order they were added."""
 
     @property
     def map_extent(self) -> float:
@@ -98,9 +115,10 @@ class ShownMap:
 
     # ------------------------------------------------------------------ display fit
     def camera_centers(self) -> np.ndarray:
-        """(C, 3) world centres of the keyframes, the path's frames and the current frame."""
+        """(C, 3) world centres of the keyframes, the path's frames, the current frame and the other paths'
+        frames (the fit and the home camera frame them all)."""
         cur = self.current[None, :3, 3] if self.current is not None else np.empty((0, 3))
-        return np.concatenate([self.kf_centers(), self.path_c, cur])
+        return np.concatenate([self.kf_centers(), self.path_c, cur, *(o.centers for o in self.other_paths)])
 
     def compute_fit(self) -> tuple[np.ndarray, float]:
         """(centre (3,), extent) around the points, keyframe centres, path and current frame."""
@@ -161,4 +179,4 @@ class ShownMap:
         return bool(len(centres)) and bool(np.abs(centres - c).max() > 0.6 * ext)
 
 
-__all__ = ["ShownMap"]
+__all__ = ["ShownMap", "OtherPath"]

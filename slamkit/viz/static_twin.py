@@ -58,6 +58,9 @@ def draw_map_from_above(ax, view: "MapView", max_points: int = 30_000) -> dict[s
     if len(path) > 1:
         ax.plot(path[:, 0], path[:, 1], color="#444", lw=0.8)
         drawn["path"] = len(path)
+    for other in shown.other_paths:  # another walk through the map, in its colour
+        xy = _apply(T, other.centers)
+        ax.plot(xy[:, 0], xy[:, 1], "o-", color=other.color, lw=1.0, ms=2.5, zorder=3)
     kf = _apply(T, shown.kf_centers())
     if len(kf):
         ax.scatter(kf[:, 0], kf[:, 1], c=recency_colors(shown.time_fractions(shown.kf_times)), s=14,
@@ -67,7 +70,7 @@ def draw_map_from_above(ax, view: "MapView", max_points: int = 30_000) -> dict[s
         c = _apply(T, shown.current[None, :3, 3])[0]
         ax.plot(c[0], c[1], "o", ms=9, mfc="none", mec=CURRENT_COLOR, mew=2, zorder=4)
         drawn["current"] = 1
-    cams = np.concatenate([path, kf, np.empty((0, 3))])
+    cams = np.concatenate([path, kf, *(_apply(T, o.centers) for o in shown.other_paths), np.empty((0, 3))])
     box = [np.percentile(pts[:, :2], [2, 98], axis=0)] if len(pts) else []  # outliers aside
     box += [np.stack([cams[:, :2].min(0), cams[:, :2].max(0)])] if len(cams) else []  # every camera
     box = np.concatenate(box) if box else np.zeros((2, 2))
@@ -102,7 +105,8 @@ def draw_map_from_camera(ax, view: "MapView", max_points: int = 40_000) -> dict[
     viewer, looking at the map's centre, z up, the viewer's field of view and aspect), on a matplotlib axis
     spanning the viewer's picture: points in the view's colours (by height on the view's scale, or in their
     image colours), far ones drawn first; keyframe frustums and the path from green (first) to red (last);
-    the current frame blue; loop closures cyan. Returns what was drawn (counts)."""
+    the current frame blue; loop closures cyan; other paths (:meth:`MapView.add_path`) in their colours, a
+    line with a dot at every frame. Returns what was drawn (counts; ``other_paths``: their frames in the picture)."""
     from matplotlib.collections import LineCollection
 
     from .scene import (LOOP_COLOR, display_from_map, frustum_vertices, height_colors, home_camera_position,
@@ -113,7 +117,7 @@ def draw_map_from_camera(ax, view: "MapView", max_points: int = 40_000) -> dict[
     ax.set_xlim(-1, 1), ax.set_ylim(-1, 1)
     ax.set_xticks([]), ax.set_yticks([])
     ax.set_facecolor(settings.background)
-    drawn = {"points": 0, "keyframes": 0, "path": 0, "current": 0, "loops": 0}
+    drawn = {"points": 0, "keyframes": 0, "path": 0, "current": 0, "loops": 0, "other_paths": 0}
     if shown.key is None or shown.fit is None:
         ax.text(0, 0, "no map yet", ha="center", va="center", color="#777")
         return drawn
@@ -169,10 +173,25 @@ def draw_map_from_camera(ax, view: "MapView", max_points: int = 40_000) -> dict[
         if len(shown.loop_edges):
             drawn["loops"] = segments(shown.loop_edges.reshape(-1, 3), np.tile(LOOP_COLOR, (len(shown.loop_edges), 1)),
                                       4.0)
+    for other in shown.other_paths if settings.show_path else []:
+        c = other.centers
+        if len(c) >= 2:
+            segments(np.stack([c[:-1], c[1:]], axis=1).reshape(-1, 3), np.tile(other.color, (len(c) - 1, 1)), 1.2)
+        xy, depth = to_screen(c)
+        keep = (depth > 1e-3) & (np.abs(xy) <= 1.05).all(axis=1)
+        ax.scatter(xy[keep, 0], xy[keep, 1], color=other.color, s=7.0, lw=0, zorder=4)
+        drawn["other_paths"] += int(keep.sum())
     if settings.show_current and shown.current is not None:
         v = frustum_vertices(np.asarray(shown.current, np.float64)[None], shown.camera, depth_kf * 1.5)
         drawn["current"] = int(segments(v, np.tile(CURRENT_COLOR, (8, 1)), 1.5) > 0)
     return drawn
+
+
+def _color_name(rgb) -> str:
+    """A word for a colour of another path in the picture's title ('black', else its '#rrggbb')."""
+    from .legend import css_color
+
+    return "black" if max(rgb) < 0.1 else css_color(rgb)
 
 
 def map_picture(view: "MapView", height: int = 420, title: str | None = None) -> bytes:
@@ -181,7 +200,8 @@ def map_picture(view: "MapView", height: int = 420, title: str | None = None) ->
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    width, head_px = int(round(height * view.aspect)), 44
+    others = view._map.other_paths if view.settings.show_path else []  # a line of the title for them
+    width, head_px = int(round(height * view.aspect)), 44 + 14 * bool(others)
     fig = Figure(figsize=(width / PNG_DPI, (height + head_px) / PNG_DPI), dpi=PNG_DPI)
     FigureCanvasAgg(fig)
     ax = fig.add_axes((0, 0, 1, height / (height + head_px)))
@@ -192,6 +212,8 @@ def map_picture(view: "MapView", height: int = 420, title: str | None = None) ->
              f"{drawn['keyframes']} keyframes and the path from green (first) to red (last)"
              + (", current frame blue" if drawn["current"] else "")
              + (f", {drawn['loops']} loop closure{'s' if drawn['loops'] != 1 else ''} cyan" if drawn["loops"] else "")]
+    if others:
+        lines.append("; ".join(f"{o.label}: {len(o.centers)} frames, {_color_name(o.color)}" for o in others))
     fig.text(0.01, 1 - 3 / (height + head_px), "\n".join(lines), va="top", fontsize=8.5)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=PNG_DPI)
