@@ -22,10 +22,11 @@ finished run wrote (``slam.save`` / ``slamkit run --out``) as the state's first 
 - **mapping goes on** in the map: keyframes and points are added, bundle adjustment runs as usual, but the map
   is never normalized (``ba.normalize`` off: ``Reconstruction.normalize`` would move it out of its frame) and
   a given camera's radial distortion is not estimated again (``ba.radial_keyframes`` 0: the map's is used).
-- **the reference keyframe** (:meth:`MapReuse.reference`, ``map_reuse.covisible_reference``): in a loaded
-  map the keyframe decision measures flow and parallax against the keyframe sharing most of the frame's
+- **the reference keyframe** (:meth:`MapReuse.reference`): with ``map_reuse.covisible_reference`` (off by
+  default) the keyframe decision measures flow and parallax against the keyframe sharing most of the frame's
   tracked points, and the local map is centred on it (ORB-SLAM's reference keyframe), not against the last
-  inserted one: walking through the old map asks for no keyframe where its keyframes already see the frame.
+  inserted one. Measured on 7-Scenes redkitchen 300-599 in the map of 0-299: 40 keyframes added instead of
+  37, 5.36 cm instead of 5.02 cm under the first run's alignment, so it stays opt-in.
 - **localize only** (``localize_only=True``, ORB-SLAM's localization mode): the map is left as loaded: no
   final BA, and where tracking would insert a keyframe while the frame still tracks
   ``map_reuse.odometry_below`` or more of the loaded map's points, none is inserted (the reference moves).
@@ -64,8 +65,6 @@ from .stages.keyframes import KeyframeDecision
 from .stages.loop_closer import MergeCandidate
 from .stages.relocalizer import Relocalizer, RelocalizerConfig
 from .state import FrameStatus, Segment
-
-
 
 if TYPE_CHECKING:  # pragma: no cover
     from .config import SlamConfig
@@ -295,7 +294,8 @@ class MapReuse:
         slam_map = st.segment.slam_map
         st.last_keyframe = keyframe
         st.local_map = slam._local_map(slam_map, keyframe)
-        st.points_at_last_keyframe = slam_map.num_points_observed(keyframe, slam.config.keyframes.reference_min_observers)
+        st.points_at_last_keyframe = slam_map.num_points_observed(keyframe,
+                                                                  slam.config.keyframes.reference_min_observers)
 
     def gate(self, slam: "Slam", tr, decision: KeyframeDecision) -> KeyframeDecision:
         """Localizing only, where a keyframe is due: none while the frame tracks ``odometry_below`` or more of the
