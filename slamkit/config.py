@@ -16,6 +16,7 @@ from .errors import ConfigError, check_fields, check_type
 from .features import MatchingConfig, available_extractors, available_matchers
 from .features.learned import EXTRACTORS as LEARNED_EXTRACTORS, MATCHER_FEATURES, MATCHERS as LEARNED_MATCHERS
 from .features.learned import PIPELINES as LEARNED_PIPELINES, unavailable_reason
+from .map_reuse_config import MapReuseConfig
 from .stages.ba import BundleAdjustmentConfig
 from .stages.initializer import InitializerConfig
 from .stages.keyframes import KeyframeConfig
@@ -88,6 +89,8 @@ class SlamConfig:
     loop_closing: LoopClosingConfig = field(default_factory=LoopClosingConfig)
     """Loop detection and correction (``--set loop_closing.enabled=false`` turns it off; the ``seed`` preset
     has it off, as the source paper)."""
+    map_reuse: MapReuseConfig = field(default_factory=MapReuseConfig)
+    """A run in a saved map (``--map RUN_DIR``, :mod:`slamkit.map_reuse`); nothing without one."""
 
     def __post_init__(self) -> None:
         _check_field_types(self, "SlamConfig")
@@ -114,7 +117,8 @@ class SlamConfig:
         if self.camera and self.camera != "auto" and not is_camera_path(self.camera):
             parse_camera_values(self.camera, "camera")
         for stage in (self.initializer, self.tracker, self.keyframes, self.mapper, self.local_mapping, self.ba,
-                      self.loop_closing, self.self_calibration, self.motion_model, self.pose_refinement):
+                      self.loop_closing, self.self_calibration, self.motion_model, self.pose_refinement,
+                      self.map_reuse):
             stage.validate()
         if self.mapper.min_keyframe_points > self.initializer.min_points * 10:
             raise ConfigError("mapper.min_keyframe_points is larger than any initial map could provide "

@@ -338,7 +338,7 @@ class Slam:
             cam = seg.slam_map.pycolmap_camera
             visible, _ = st.local_map.project(tr.cam_from_world, cam.calibration_matrix(), (cam.width, cam.height))
             seg.recent_points.observe(st.local_map.ids[visible], tr.point3D_ids)
-        reference = st.last_keyframe
+        reference, tr = (st.last_keyframe, tr) if self.map_reuse is None else self.map_reuse.reference(self, tr, ff)
         st.set_pose(record, reference, tr.cam_from_world, TRACKED, absolute=True)
         self.pose_refiner.observe(record.index, seg.id, ff.keypoints[tr.point2D_idxs], tr.point3D_ids, self.camera.dist)
         if seg.slam_map.num_keyframes < RETRACK_BELOW_KEYFRAMES:  # young map: track again in finish()
@@ -352,7 +352,7 @@ class Slam:
         message = (f"relocalized against keyframe {reference}: " if relocalized else "") + tr.reason
         is_kf, ba_kind, (loop, merge), mapping = False, "", (LoopClosingResult(), None), None
         if decision.is_keyframe and self.map_reuse is not None and self.map_reuse.localize_only:
-            decision = self.map_reuse.reanchor(self, tr, decision)  # the map is left as it is
+            decision = self.map_reuse.gate(self, tr, decision)  # the map is left as it is, but outside it
         if decision.is_keyframe:
             inserted = self._insert_keyframe(ff, record, tr, decision, timings)
             is_kf, ba_kind, message, decision, (loop, merge), mapping = inserted

@@ -269,3 +269,21 @@ class ImageListSource(FrameSource):
         return image, self.paths[i], fingerprint
 
     __repr__ = FrameSource.__repr__
+
+
+class FrameRange(FrameSource):
+    """Frames ``start`` to ``stop`` (exclusive) of another source, with their own timestamps, ids and ground truth:
+    the two parts of one video as two runs (a map made of the first, the second localized in it)."""
+
+    def __init__(self, inner: FrameSource, start: int, stop: int):
+        self.inner, self.start = inner, int(start)
+        self.name = f"{inner.name}[{start}:{stop}]"
+        self.camera, self.camera_in_spec = inner.camera, getattr(inner, "camera_in_spec", False)
+        self.timestamps = np.asarray(inner.timestamps)[start:stop]
+        self.frame_ids = np.asarray(inner.frame_ids)[start:stop]
+        self.gt_poses = None if inner.gt_poses is None else np.asarray(inner.gt_poses)[start:stop]
+
+    def _read_fingerprinted(self, i: int) -> tuple[np.ndarray, Path | None, Fingerprint | None]:
+        return self.inner._read_fingerprinted(self.start + i)
+
+    __repr__ = FrameSource.__repr__
