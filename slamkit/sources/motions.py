@@ -366,8 +366,8 @@ def handheld_pan(n: int = 200, amplitude: float = 35.0, swings: float = 1.0, til
     +-``amplitude`` degrees about facing it (``swings`` periods over the n frames) and the pitch by up to
     ``tilt`` degrees about 5 degrees down (twice as fast), each with up to 3 degrees of smooth random
     wobble and up to 3 degrees of roll, while the hand moves the camera centre by a smooth random
-    signal of at most ``shake`` metres along each axis (from ``seed``): a small baseline next to the
-    rotation's image motion."""
+    signal of at most ``shake`` metres along each axis (from ``seed``; from the first frame's centre up to
+    twice that): a small baseline next to the rotation's image motion. ``shake=0``: a pure rotation."""
     n = _check_frames(n)
     amplitude = _check_range("amplitude", amplitude, 0, 75, "degrees", open_low=True)
     swings = _check_range("swings", swings, 0, 20, open_low=True)
