@@ -5,16 +5,17 @@ by the infinite homography ``H = K R K^-1`` (Hartley 1997, "Self-calibration of 
 fundamental matrix of such a pair is undefined, so :mod:`~slamkit.stages.self_calibration`'s epipolar estimate
 leaves those pairs out (and calls a window of them weak), but the pair itself fixes the focal length: only at
 the right ``f`` do the corners of both frames, turned into rays, differ by one rotation. Radial distortion
-breaks that model as much as a wrong focal length does (a rendered k1 = 0.25 fitted as a pinhole was 17 %
-short), so both are searched together: for each radial coefficient of
+breaks that model as much as a wrong focal length does (the rendered pan with k1 = 0.25 fitted as a pinhole:
+392-396 px for 500, seeds 0-2), so both are searched together: for each radial coefficient of
 :func:`~slamkit.stages.self_calibration.radial_candidates` (OpenCV's ``k1`` at a focal length of half the
 image's larger side) and each focal length of a grid, the corners are undistorted, the best rotation between
 the two frames' rays is found in closed form (Kabsch), and the cost is the mean squared reprojection error in
 the image's own pixels (capped: robust to the few bad tracks a loose homography left). The least total cost
-over the frame pairs is the start of a least-squares refinement of the focal length with two radial
-coefficients ``k1, k2`` (soft L1 loss; each pair's rotation in closed form), which is the estimate. A run uses
-its focal length and ``k1`` (:attr:`~slamkit.stages.self_calibration.FocalEstimate.k2` is reported only: the
-run's camera has one radial coefficient until the final BA).
+over the frame pairs is the start of a least-squares refinement of both (soft L1 loss; each pair's rotation
+in closed form), which is the estimate. One radial coefficient, as the run's camera has: a first version fitted
+a second one (``k2``) too, and on freiburg1's lens (k1 0.262, k2 -0.953, k3 1.163; seed 0) gave k1 0.118 with
+k2 -0.157; the run, which tracks with ``k1`` alone, then built a map of a camera that only turned and ended 24 %
+short. With one coefficient: 503.0 px, k1 0.033.
 
 Frame pairs are far apart (``rotation_min_flow`` of the image, several degrees of turn: a small rotation
 hardly depends on ``f``); those that a rotation does not explain within ``rotation_max_residual`` pixels at
@@ -37,12 +38,13 @@ from .self_calibration import (BLOCK_FRAMES, FocalEstimate, SelfCalibrationConfi
 
 ROTATION_MODEL_ERROR = 0.02
 """Relative error of the rotation estimate that no resampling shows: a hand-held camera's centre moves by
-centimetres, which a rotation model absorbs partly into the focal length (and a lens with more than two radial
-coefficients into ``k1, k2``). On the rendered hand-held pans (``synthetic:handheld-pan``, 60 frames, 5 seeds
-each of no distortion, k1 = 0.25 and freiburg1's lens; ``benchmarks/bench_self_calibration.py --cases 'syn-pan*'
---first-frames --seeds 5``) the estimate was long by 0.2 to 3.7 % in all 15, and the bootstrap spread alone
-0.5-1 %: at 0.015 the interval missed freiburg1's lens in 1 of 5 seeds (3.7 % for ± 3.4 %). 0.02 is
-calibrated on those same 15 estimates (benchmarks/HISTORY.md, "Session 26")."""
+centimetres, which a rotation model absorbs partly into the focal length (and a lens with more than one radial
+coefficient into ``k1``). On the rendered hand-held pans (``synthetic:handheld-pan``, 60 frames, 5 seeds each of
+no distortion, k1 = 0.25 and freiburg1's lens; ``benchmarks/bench_self_calibration.py --cases 'syn-pan*'
+--first-frames --seeds 5``) the estimate was off by -0.6 to +2.4 % (long in 11 of 15) with a bootstrap spread of
+0.1-1.0 %: 0.015 would have covered all 15 (± 3.0-3.6 %), 0.02 does with a margin (± 4.0-4.4 %), kept because
+those are one rendered motion and the error is a bias, not noise (benchmarks/HISTORY.md, "Session 26")."""
+
 
 MAX_PAIRS = 24
 """At most this many frame pairs (spread evenly over the window) enter the fit: each costs a least-squares
@@ -102,31 +104,19 @@ def _pair_cost(x1: np.ndarray, x2: np.ndarray, grid: np.ndarray, cx: float, cy: 
     med = np.zeros_like(cost)
     for i, k in enumerate(candidates):
         u1, u2 = undistort_half(x1, cx, cy, half, k), undistort_half(x2, cx, cy, half, k)
-        err = rotation_errors(u1, u2, grid, cx, cy) * _magnification(u2, cx, cy, half, k)[None]
+        err = rotation_errors(u1, u2, grid, cx, cy) / _magnification(u2, cx, cy, half, k)[None]
         cost[i], med[i] = np.minimum(err, CAP_PX2).mean(axis=1), np.median(err, axis=1)
     return cost, med
 
 
-def undistort2(xy: np.ndarray, cx: float, cy: float, half: float, k1: float, k2: float) -> np.ndarray:
-    """(N, 2) pixels of a lens ``r (1 + k1 r^2 + k2 r^4)`` (radius in units of ``half``) -> its pinhole pixels."""
-    d = (np.asarray(xy, np.float64) - (cx, cy)) / half
-    rd = np.hypot(d[:, 0], d[:, 1])
-    r = rd.copy()
-    for _ in range(8):
-        r2 = r * r
-        r -= (r * (1 + r2 * (k1 + k2 * r2)) - rd) / np.maximum(1 + r2 * (3 * k1 + 5 * k2 * r2), 0.1)
-    scale = np.divide(r, rd, out=np.ones_like(rd), where=rd > 0)
-    return d * scale[:, None] * half + (cx, cy)
-
-
 def _lens_residuals(x: np.ndarray, pixels: list[tuple[np.ndarray, np.ndarray]], cx: float, cy: float,
                     half: float) -> np.ndarray:
-    """Reprojection errors (pixels of the image, roughly) of every pair's best rotation for ``x`` = (log f,
-    k1, k2) at focal ``half``."""
-    f, k1, k2 = math.exp(x[0]), x[1], x[2]
+    """Reprojection errors (pixels of the distorted image, to first order) of every pair's best rotation for
+    ``x`` = (log f, radial coefficient at focal ``half``)."""
+    f, k = math.exp(x[0]), float(x[1])
     out = []
     for x1, x2 in pixels:
-        u1, u2 = undistort2(x1, cx, cy, half, k1, k2), undistort2(x2, cx, cy, half, k1, k2)
+        u1, u2 = undistort_half(x1, cx, cy, half, k), undistort_half(x2, cx, cy, half, k)
         r1 = np.column_stack([(u1 - (cx, cy)) / f, np.ones(len(u1))])
         r2 = np.column_stack([(u2 - (cx, cy)) / f, np.ones(len(u2))])
         r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
@@ -135,18 +125,16 @@ def _lens_residuals(x: np.ndarray, pixels: list[tuple[np.ndarray, np.ndarray]], 
         U[:, 2] *= np.sign(np.linalg.det(U @ Vt))
         p = r1 @ (U @ Vt).T
         proj = f * p[:, :2] / np.maximum(p[:, 2:], 1e-9) + (cx, cy)
-        q = (((u2 - (cx, cy)) / half) ** 2).sum(1)
-        scale = np.sqrt(np.abs((1 + q * (3 * k1 + 5 * k2 * q)) * (1 + q * (k1 + k2 * q))))
-        out.append(((proj - u2) / np.maximum(scale, 0.1)[:, None]).ravel())
+        out.append(((proj - u2) / np.sqrt(_magnification(u2, cx, cy, half, k))[:, None]).ravel())
     return np.concatenate(out)
 
 
 def refine_lens(pixels: list[tuple[np.ndarray, np.ndarray]], x0: np.ndarray, cx: float, cy: float, half: float,
                 max_nfev: int = 50) -> np.ndarray:
-    """(log f, k1, k2) minimising the pairs' reprojection errors (Levenberg-Marquardt-like trust region, soft
-    L1 loss at 1 px) from ``x0``; each pair's rotation is the best one in closed form (Kabsch)."""
+    """(log f, radial coefficient at focal ``half``) minimising the pairs' reprojection errors (a trust region,
+    soft L1 loss at 1 px) from ``x0``; each pair's rotation is the best one in closed form (Kabsch)."""
     res = least_squares(_lens_residuals, np.asarray(x0, float), args=(pixels, cx, cy, half), loss="soft_l1",
-                        f_scale=1.0, x_scale=np.array([0.01, 0.01, 0.01]), max_nfev=max_nfev)
+                        f_scale=1.0, x_scale=np.array([0.01, 0.01]), max_nfev=max_nfev)
     return res.x
 
 
@@ -161,7 +149,8 @@ def _argmin2(cost: np.ndarray, grid: np.ndarray, candidates: np.ndarray) -> tupl
                 return float(np.clip(0.5 * (y[at - 1] - y[at + 1]) / den, -0.5, 0.5)) * step
         return 0.0
     f = float(grid[j] * math.exp(vertex(cost[i], j, math.log(grid[1] / grid[0])) if len(grid) > 1 else 0.0))
-    k = float(candidates[i] + (vertex(cost[:, j], i, candidates[1] - candidates[0]) if len(candidates) > 1 else 0.0))
+    step = candidates[1] - candidates[0] if len(candidates) > 1 else 0.0
+    k = float(candidates[i] + (vertex(cost[:, j], i, step) if len(candidates) > 1 else 0.0))
     return f, k
 
 
@@ -203,8 +192,8 @@ def estimate_rotation(grays: list[np.ndarray], config: SelfCalibrationConfig = S
         matches = [m for m, k in zip(matches, keep) if k]
     focal, radial = _argmin2(costs.sum(0), coarse, candidates)
     pixels = [(x1, x2) for _, x1, x2 in matches]
-    x = refine_lens(pixels, np.array([math.log(focal), radial, 0.0]), cx, cy, half)
-    focal, radial, radial2 = math.exp(x[0]), float(x[1]), float(x[2])
+    x = refine_lens(pixels, np.array([math.log(focal), radial]), cx, cy, half)
+    focal, radial = math.exp(x[0]), float(x[1])
     blocks = np.array([a for a, _, _ in matches]) // BLOCK_FRAMES
     members = [np.flatnonzero(blocks == b) for b in np.unique(blocks)]
     spread = math.inf
@@ -223,7 +212,7 @@ def estimate_rotation(grays: list[np.ndarray], config: SelfCalibrationConfig = S
     elif uncertainty > config.weak_uncertainty:
         reason = f"the turned frame pairs disagree by {100 * spread:.0f} % (one standard deviation)"
     return FocalEstimate(focal, uncertainty, n, len(grays), bool(reason), reason, k1=radial * (focal / half) ** 2,
-                         k2=radial2 * (focal / half) ** 4, model="rotation")
+                         model="rotation")
 
 
 __all__ = ["estimate_rotation", "refine_lens", "rotation_errors", "rotation_pairs", "ROTATION_MODEL_ERROR"]

@@ -152,8 +152,6 @@ class FocalEstimate:
     """The summed cost over the focal lengths of ``grid`` (for plots)."""
     k1: float = 0.0
     """The radial coefficient found with it (OpenCV's ``k1`` at :attr:`focal`; ``first_radial``), 0 when none."""
-    k2: float = 0.0
-    """The second radial coefficient (OpenCV's, at :attr:`focal`) of a rotation estimate, 0 otherwise."""
     model: str = "epipolar"
     """What fixed it: "epipolar" (fundamental matrices) or "rotation" (:mod:`~.rotation_calibration`)."""
 
