@@ -10,10 +10,13 @@ with barrel distortion (500 px, k1 = -0.1), with pincushion distortion as strong
 (k1 = 0.25) and with freiburg1's own lens (k1 0.262, k2 -0.953, k3 1.163; its ``k1`` column is the truth's k1
 only), a drive round a city block (forward motion with four turns,
 700 px), pure forward motion and an orbit round the room's cube, looking at it (degenerate cases: the
-estimate must say it is weak). Seeds 0 .. N-1 go
+estimate must say it is weak), and a hand-held pan (issue 52: looking round from where one stands, a few
+centimetres of baseline; ``syn-pan*``) without distortion, with k1 = 0.25 and with freiburg1's lens. Seeds 0 .. N-1 go
 to ``SlamConfig.seed`` and to the synthetic spec's seed.
 
-Columns per run: posed (%) of all frames; ATE (m, Sim(3), largest segment); focal (px, the final camera of
+Columns per run: posed (%) of all frames; ATE (m, Sim(3), largest segment; undefined, "-", for a run posed by
+rotation only, every camera centre one point); rot (degrees: the rotation error's RMSE after aligning the
+orientations alone, defined for those too); focal (px, the final camera of
 the run) and its error against the truth (%); k1 (the run's radial coefficient); first (px) the estimate
 from the first frames, the ± it shows (%, none when weak) and whether it was weak; whether the run's estimate is
 reported weak at the end; wall seconds. Per case and
@@ -81,13 +84,18 @@ CASES = [
     Case("syn-room-k1+0.25", "synthetic:handheld?frames=150&k1=0.25" + _SYN, 500.0, k1=0.25),
     Case("syn-room-fr1lens", "synthetic:handheld?frames=150&k1=0.262&k2=-0.953&k3=1.163" + _SYN, 500.0, k1=0.262),
     Case("syn-orbit", "synthetic:orbit?frames=150" + _SYN, 500.0),
+    Case("syn-pan", "synthetic:handheld-pan?frames=150" + _SYN, 500.0),
+    Case("syn-pan-k1+0.25", "synthetic:handheld-pan?frames=150&k1=0.25" + _SYN, 500.0, k1=0.25),
+    Case("syn-pan-fr1lens", "synthetic:handheld-pan?frames=150&k1=0.262&k2=-0.953&k3=1.163" + _SYN, 500.0,
+         k1=0.262),
 ]
 MODES = ("known", "auto", "auto-nofinal")
 """known: the case's calibration; auto: ``camera="auto"``; auto-nofinal: the same without the final global
 BA's refinement of the focal length (``self_calibration.refine_final=false``)."""
-COLUMNS = ["row", "case", "mode", "seed", "status", "frames", "posed_pct", "ate_m", "focal", "focal_err_pct", "k1",
-           "first_focal", "first_uncertainty_pct", "first_weak", "weak_at_end", "wall_s", "error"]
-MEAN_KEYS = ["posed_pct", "ate_m", "focal", "focal_err_pct", "k1", "first_focal", "first_uncertainty_pct", "wall_s"]
+COLUMNS = ["row", "case", "mode", "seed", "status", "frames", "posed_pct", "ate_m", "rot_deg", "focal", "focal_err_pct",
+           "k1", "first_focal", "first_uncertainty_pct", "first_weak", "weak_at_end", "wall_s", "error"]
+MEAN_KEYS = ["posed_pct", "ate_m", "rot_deg", "focal", "focal_err_pct", "k1", "first_focal", "first_uncertainty_pct",
+             "wall_s"]
 
 
 def _absent(case: Case) -> str | None:
@@ -128,7 +136,10 @@ def run_one(job: tuple[Case, str, int, dict]) -> dict:
                     "first_weak": bool(first.weak)}
         if gt is not None and len(traj) >= 3:
             try:
-                row["ate_m"] = float(ate(gt, traj, align="sim3").rmse)
+                result = ate(gt, traj, align="sim3")
+                row["rot_deg"] = float(result.oriented_rotation.rmse)
+                if math.isfinite(result.rmse):
+                    row["ate_m"] = float(result.rmse)
             except SlamkitError as e:
                 row["error"] = f"ATE undefined: {e}"
     except Exception as e:  # a failing run is a row of the table
@@ -138,21 +149,21 @@ def run_one(job: tuple[Case, str, int, dict]) -> dict:
 
 
 FIRST_COLUMNS = ["case", "seed", "focal_true", "first_focal", "err_pct", "interval_pct", "pairs", "weak", "covered",
-                 "reason"]
+                 "k1", "model", "reason"]
 
 
-def first_frames_one(job: tuple[Case, int]) -> dict:
+def first_frames_one(job: tuple[Case, int, dict]) -> dict:
     """Self-calibration's first phase only (:func:`estimate_focal` on the first ``window_frames`` frames, as a
     run with ``camera="auto"`` makes it, with the run's seed): the estimate, its error against the truth, the
     interval it shows (``± %``) and whether that covers the truth (None for a weak estimate, which shows none)."""
-    case, seed = job
+    case, seed, overrides = job
     from slamkit import SlamConfig, open_source
     from slamkit.stages.self_calibration import estimate_focal
 
     row = {"case": case.name, "seed": seed, "focal_true": case.focal}
     if (why := _absent(case)) is not None:
         return row | {"reason": f"skipped: {why}"}
-    config = SlamConfig().self_calibration
+    config = SlamConfig().with_overrides(**overrides).self_calibration
     source = open_source(case.source_spec(seed), **case.kw)
     grays = [source[i].gray for i in range(min(len(source), config.window_frames))]
     est = estimate_focal(grays, config, seed)
@@ -160,16 +171,16 @@ def first_frames_one(job: tuple[Case, int]) -> dict:
     return row | {"first_focal": est.focal, "err_pct": 100 * math.expm1(err),
                   "interval_pct": None if est.weak else 100 * est.interval, "pairs": est.num_pairs,
                   "weak": est.weak, "covered": None if est.weak else bool(abs(err) <= est.interval),
-                  "reason": est.reason}
+                  "k1": est.k1, "model": est.model, "reason": est.reason}
 
 
-def first_frames(cases: list[Case], seeds: int, jobs: int, csv_path: Path) -> int:
+def first_frames(cases: list[Case], seeds: int, jobs: int, csv_path: Path, overrides: dict | None = None) -> int:
     """``--first-frames``: per case, how often the interval of the first frames' estimate covers the true
     focal length (weak estimates show none and are counted apart)."""
     runs = []
     pool = mp.get_context("spawn").Pool(jobs, maxtasksperchild=4)
     try:
-        for r in pool.imap_unordered(first_frames_one, [(c, s) for c in cases for s in range(seeds)]):
+        for r in pool.imap_unordered(first_frames_one, [(c, s, overrides or {}) for c in cases for s in range(seeds)]):
             runs.append(r)
             print(" ".join(f"{k}={r[k]:.4g}" if isinstance(r.get(k), float) else f"{k}={r.get(k)}"
                            for k in FIRST_COLUMNS if k in r), flush=True)
@@ -218,11 +229,12 @@ def _cell(row: dict, key: str, fmt: str) -> str:
 
 
 def markdown(rows: list[dict]) -> str:
-    lines = ["| case | mode | seeds | posed % | ATE (m) | focal (px) | focal error % | k1 | first frames (px) | "
-             "± % | weak | weak at the end |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| case | mode | seeds | posed % | ATE (m) | rot (deg) | focal (px) | focal error % | k1 | "
+             "first frames (px) | ± % | weak | weak at the end |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['case']} | {r['mode']} | {r['seed']} | {_cell(r, 'posed_pct', '.1f')} | "
-                     f"{_cell(r, 'ate_m', '.4f')} | {_cell(r, 'focal', '.1f')} | {_cell(r, 'focal_err_pct', '.2f')} | "
+                     f"{_cell(r, 'ate_m', '.4f')} | {_cell(r, 'rot_deg', '.3f')} | {_cell(r, 'focal', '.1f')} | "
+                     f"{_cell(r, 'focal_err_pct', '.2f')} | "
                      f"{_cell(r, 'k1', '.4f')} | "
                      f"{_cell(r, 'first_focal', '.1f')} | {_cell(r, 'first_uncertainty_pct', '.1f')} | "
                      f"{'-' if r['first_weak'] is None else r['first_weak']} | "
@@ -244,10 +256,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     pats = args.cases.split(",") if args.cases else ["*"]
     cases = [c for c in CASES if any(fnmatch.fnmatch(c.name, p.strip()) for p in pats)]
-    if args.first_frames:
-        return first_frames(cases, args.seeds, args.jobs, args.csv.with_name("bench_self_calibration_first.csv"))
-    modes = [m.strip() for m in args.modes.split(",")]
     overrides = dict(item.split("=", 1) for item in args.set)
+    if args.first_frames:
+        return first_frames(cases, args.seeds, args.jobs, args.csv.with_name("bench_self_calibration_first.csv"),
+                            overrides)
+    modes = [m.strip() for m in args.modes.split(",")]
     jobs = [(c, m, s, overrides) for c in cases for m in modes for s in range(args.seeds)]
     runs = []
     pool = mp.get_context("spawn").Pool(args.jobs, maxtasksperchild=1)
@@ -256,8 +269,8 @@ def main(argv: list[str] | None = None) -> int:
             runs.append(r)
             print(f"[{time.strftime('%H:%M:%S')}] {r['case']} {r['mode']} seed {r['seed']}: {r['status']} "
                   + " ".join(f"{k}={r[k]:.4g}" if isinstance(r.get(k), float) else f"{k}={r.get(k)}"
-                             for k in ("posed_pct", "ate_m", "focal", "focal_err_pct", "k1", "first_focal", "first_weak",
-                                       "weak_at_end")
+                             for k in ("posed_pct", "ate_m", "rot_deg", "focal", "focal_err_pct", "k1", "first_focal",
+                                       "first_weak", "weak_at_end")
                              if k in r) + (f" {r['error']}" if r["error"] else ""), flush=True)
     finally:
         pool.close()  # workers exit on their own (terminating them mid-teardown makes pycolmap print a trace)

@@ -8,7 +8,7 @@ import pytest
 
 from slamkit.errors import ConfigError
 from slamkit.sources import motions, open_source, synthetic
-from slamkit.sources.motions import HARD_MOTIONS, MOTIONS, fast_forward, fast_yaw, forward, fast_yaw_angles, handheld, jerk_frames, jerky
+from slamkit.sources.motions import HARD_MOTIONS, MOTIONS, fast_forward, fast_yaw, forward, fast_yaw_angles, handheld, handheld_pan, jerk_frames, jerky
 from slamkit.sources.scene import BOXES, ROOM_X, ROOM_Y, ROOM_Z, default_room
 from slamkit.sources.synthetic import DEFAULT_CAMERA
 
@@ -116,6 +116,19 @@ def test_fast_forward_moves_along_the_optical_axis_at_speed(speed):
     assert (np.abs(steps[moving, 2]) > 0.9 * np.linalg.norm(steps[moving], axis=1)).all()
     # not a line: a Sim(3) alignment is defined
     assert np.linalg.svd(poses[:, :3, 3] - poses[:, :3, 3].mean(0), compute_uv=False)[1] > 0.1
+
+
+@pytest.mark.parametrize("shake", [0.0, 0.03, 0.1])
+def test_a_handheld_pan_turns_about_a_centre_the_hand_moves_by_at_most_twice_its_shake(shake):
+    poses = handheld_pan(150, amplitude=35.0, shake=shake, seed=3)
+    c = poses[:, :3, 3]
+    assert np.abs(c - c[0]).max() <= 2 * shake + 1e-12
+    if shake:
+        assert np.abs(c - c[0]).max() > 0.2 * shake  # the hand does move
+    axis = poses[:, :3, 2]  # the optical axis in the world
+    heading = np.degrees(np.arctan2(-axis[:, 0], axis[:, 1]))
+    assert 2 * 35.0 - 6.0 <= np.ptp(heading) <= 2 * 35.0 + 6.0  # +-amplitude with up to 3 degrees of wobble
+    np.testing.assert_array_equal(poses, handheld_pan(150, amplitude=35.0, shake=shake, seed=3))
 
 
 def test_seeds_are_reproducible_and_differ():

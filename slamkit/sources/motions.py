@@ -359,6 +359,34 @@ def turn_then_walk(n: int = 150, turn_frames: int | None = None, amplitude: floa
     return np.concatenate([turning[:-1], walking])
 
 
+def handheld_pan(n: int = 200, amplitude: float = 35.0, swings: float = 1.0, tilt: float = 10.0,
+                 shake: float = 0.03, distance: float = 1.5, seed: int = 0) -> np.ndarray:
+    """A hand-held camera looked round from where one stands, mostly rotation (as TUM freiburg1's rpy and
+    desk clips): standing ``distance`` metres from the front wall (1.45 m high), the heading swings
+    +-``amplitude`` degrees about facing it (``swings`` periods over the n frames) and the pitch by up to
+    ``tilt`` degrees about 5 degrees down (twice as fast), each with up to 3 degrees of smooth random
+    wobble and up to 3 degrees of roll, while the hand moves the camera centre by a smooth random
+    signal of at most ``shake`` metres along each axis (from ``seed``; from the first frame's centre up to
+    twice that): a small baseline next to the rotation's image motion. ``shake=0``: a pure rotation."""
+    n = _check_frames(n)
+    amplitude = _check_range("amplitude", amplitude, 0, 75, "degrees", open_low=True)
+    swings = _check_range("swings", swings, 0, 20, open_low=True)
+    tilt = _check_range("tilt", tilt, 0, 30, "degrees")
+    shake = _check_range("shake", shake, 0, 0.5, "metres")
+    distance = _check_range("distance", distance, 0.5, 4.0, "metres")
+    rng = np.random.default_rng(int(seed))
+    t = np.arange(n) / max(n - 1, 1)
+    phase = 2 * np.pi * swings * t
+    wobble = [_random_signal(rng, 3.0)(swings * t) for _ in range(3)]
+    yaw = np.radians(amplitude * np.sin(phase) + wobble[0])
+    pitch = np.radians(-5.0 + tilt * np.sin(2 * phase) + wobble[1])
+    centre = np.array([0.0, ROOM_Y - distance, 1.45])
+    shift = np.stack([_random_signal(rng, shake)(swings * t) for _ in range(3)], axis=1)
+    centers = centre + shift - shift[0]
+    dirs = np.stack([-np.sin(yaw) * np.cos(pitch), np.cos(yaw) * np.cos(pitch), np.sin(pitch)], axis=1)
+    return _poses_looking_at(centers, centers + dirs, np.radians(wobble[2]))
+
+
 MOTIONS: dict[str, Callable[..., np.ndarray]] = {
     "sideways": sideways,
     "forward": forward,
@@ -373,6 +401,7 @@ MOTIONS: dict[str, Callable[..., np.ndarray]] = {
     "jerky": jerky,
     "pure-rotation": pure_rotation,
     "turn-then-walk": turn_then_walk,
+    "handheld-pan": handheld_pan,
 }
 """Motion name -> function ``(n, ...) -> (N, 4, 4)`` camera-to-world poses in the default room."""
 

@@ -18,7 +18,8 @@ in place: degenerate motion after initialization), ``loop`` (returns exactly to 
 sideways drift), ``fast-yaw`` (quick turns at a fixed yaw rate in degrees per frame while walking slowly)
 and ``jerky`` (hand-held with sudden jumps: several frames of motion in one), the rotation phases of issue 42
 ``pure-rotation`` (a pan round the room from one place: +-60 degrees, some tilt) and
-``turn-then-walk`` (2 s of turning in place, then a sideways walk), and ``default`` (the motion of
+``turn-then-walk`` (2 s of turning in place, then a sideways walk), ``handheld-pan`` (looking round from where one
+stands, hand-held: mostly rotation, a few centimetres of baseline), and ``default`` (the motion of
 the default sequence, rendered live: ``synthetic:default?noise=1`` is the default sequence before JPEG
 compression). Motions through their own scene (:data:`SCENE_MOTIONS`): ``street-drive`` (driving down a
 street at ``speed`` metres per frame, default 1.0 as KITTI at frame skip 2; :mod:`slamkit.sources.street`)

@@ -19,7 +19,9 @@ found). Two phases:
    cameras; the ``± x %`` shown is twice that, and covers the true focal length in at least 90 % of the
    rendered cases measured (a weak estimate shows none). Pairs explained as well by a homography (rotation
    about the centre, or a plane), and pairs whose optical axes meet (circling what the camera looks at), say
-   nothing about ``f`` through F and are left out.
+   nothing about ``f`` through F and are left out. When that leaves the estimate weak, the frame pairs that
+   a rotation explains (a camera that mostly turns) give it instead, through the infinite homography
+   (:mod:`~slamkit.stages.rotation_calibration`, ``rotation_min_flow``; :attr:`FocalEstimate.model`).
 2. **While mapping** (:meth:`SelfCalibrator.refining`, :meth:`SelfCalibrator.refined`): the final global
    bundle adjustment refines the focal length with the whole map (COLMAP's ``refine_focal_length``), and one
    radial distortion coefficient with it (``refine_radial``: a SIMPLE_RADIAL camera for that BA); after
@@ -28,9 +30,11 @@ found). Two phases:
    every keyframe, the focal length of a forward-moving map wanders by percents and tracking is lost.
 
 Degenerate motions: pure translation (driving straight ahead, a forward walk) gives an F that is
-skew-symmetric for every focal length, and pure rotation gives a homography; over two views neither fixes
-``f``. Turns with translation, and many views in BA, do. A window without them yields a **weak** estimate
-(:attr:`FocalEstimate.weak` with its reason) rather than a confident wrong one; BA may still fix it later.
+skew-symmetric for every focal length, and pure rotation gives a homography, which says nothing about ``f``
+through F; turns with translation, and many views in BA, fix it. A rotation's homography ``K R K^-1`` does fix
+``f`` (Hartley 1997), when the camera turns far enough: the rotation estimate above. A window with none of
+these yields a **weak** estimate (:attr:`FocalEstimate.weak` with its reason) rather than a confident wrong
+one; BA may still fix it later.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import cv2
 import numpy as np
 
 from ..errors import ConfigError, check_fields
+from .corner_tracks import _pair_matches, track_corners
 
 
 @dataclass(frozen=True)
@@ -105,6 +110,13 @@ class SelfCalibrationConfig:
     with them (:attr:`FocalEstimate.k1`). 0: pinhole (the estimate of a lens with rendered k1 = 0.25 was then
     9-23 % short, and the map was built with it). Barrel distortion that folds back inside the image is not
     searched."""
+    rotation_min_flow: float = 0.15
+    """When the frame pairs' epipolar geometry gives a weak estimate (a camera that mostly turns), the focal
+    length and radial coefficient are fitted to the pairs a rotation explains
+    (:mod:`~slamkit.stages.rotation_calibration`): pairs whose corners moved this fraction of the image's
+    larger side (median); 0: never."""
+    rotation_max_residual: float = 1.0
+    """... and that a rotation explains within this median reprojection error (pixels) at the estimate."""
 
     def validate(self) -> None:
         check_fields(self, "self_calibration", {
@@ -112,7 +124,8 @@ class SelfCalibrationConfig:
             "min_flow": "(0, 1)", "max_homography_ratio": "(0, 1]", "min_fov_deg": "[1, 170]",
             "max_fov_deg": "[1, 170]", "fallback_fov_deg": ("[0, 170]", "0 or 1 to 170 degrees"),
             "weak_uncertainty": "(0, 10]", "min_refine_keyframes": "[3, inf)", "refine_keyframes": "[0, 10000]",
-            "max_radial": "(0, 10]", "max_final_change": "(0, 100]", "first_radial": "[0, 1]"})
+            "max_radial": "(0, 10]", "max_final_change": "(0, 100]", "first_radial": "[0, 1]",
+            "rotation_min_flow": "[0, 1)", "rotation_max_residual": "(0, 100]"})
         if not self.min_fov_deg < self.max_fov_deg:
             raise ConfigError("self_calibration needs 1 <= min_fov_deg < max_fov_deg <= 170 "
                               f"(got {self.min_fov_deg}, {self.max_fov_deg})")
@@ -139,6 +152,8 @@ class FocalEstimate:
     """The summed cost over the focal lengths of ``grid`` (for plots)."""
     k1: float = 0.0
     """The radial coefficient found with it (OpenCV's ``k1`` at :attr:`focal`; ``first_radial``), 0 when none."""
+    model: str = "epipolar"
+    """What fixed it: "epipolar" (fundamental matrices) or "rotation" (:mod:`~.rotation_calibration`)."""
 
     @property
     def interval(self) -> float:
@@ -151,48 +166,9 @@ class FocalEstimate:
         if self.weak:  # no interval: the number is a starting point, not a measurement
             return f"f={self.focal:.1f} px{radial} from {self.num_pairs} frame pairs (weak: {self.reason})"
         lens = "a lens with one radial coefficient" if self.k1 else "an undistorted lens"
-        return (f"f={self.focal:.1f} px ± {100 * self.interval:.1f} %{radial} (for {lens}) from {self.num_pairs} "
-                "frame pairs")
-
-
-def track_corners(grays: list[np.ndarray], max_corners: int = 1000) -> list[dict[int, np.ndarray]]:
-    """Corner tracks through consecutive frames: one ``{track id: (2,) xy}`` per frame. Lucas-Kanade with a
-    forward-backward check (0.5 px); lost corners are replaced by new ones when fewer than half are left."""
-    h, w = grays[0].shape[:2]
-    min_distance = max(5, int(round(max(w, h) / 80)))
-    lk = dict(winSize=(21, 21), maxLevel=4, criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-    out: list[dict[int, np.ndarray]] = []
-    ids = np.zeros(0, np.int64)
-    xy = np.zeros((0, 2), np.float32)
-    next_id = 0
-    for k, g in enumerate(grays):
-        if k > 0 and len(xy):
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(grays[k - 1], g, xy.reshape(-1, 1, 2), None, **lk)
-            p0, st0, _ = cv2.calcOpticalFlowPyrLK(g, grays[k - 1], p1, None, **lk)
-            ok = (st1.ravel() == 1) & (st0.ravel() == 1)
-            ok &= np.linalg.norm(p0.reshape(-1, 2) - xy, axis=1) < 0.5
-            p1 = p1.reshape(-1, 2)
-            ok &= (p1[:, 0] >= 0) & (p1[:, 0] < w) & (p1[:, 1] >= 0) & (p1[:, 1] < h)
-            ids, xy = ids[ok], p1[ok]
-        if len(xy) < max_corners // 2:
-            mask = np.full((h, w), 255, np.uint8)
-            for x, y in xy:
-                cv2.circle(mask, (int(x), int(y)), min_distance, 0, -1)
-            new = cv2.goodFeaturesToTrack(g, max_corners - len(xy), 0.01, min_distance, mask=mask)
-            if new is not None:
-                new = new.reshape(-1, 2).astype(np.float32)
-                ids = np.concatenate([ids, np.arange(next_id, next_id + len(new))])
-                xy = np.concatenate([xy, new])
-                next_id += len(new)
-        out.append(dict(zip(ids.tolist(), xy.astype(np.float64))))
-    return out
-
-
-def _pair_matches(a: dict[int, np.ndarray], b: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    common = sorted(set(a) & set(b))
-    if not common:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    return np.array([a[i] for i in common]), np.array([b[i] for i in common])
+        turned = " turned" if self.model == "rotation" else ""
+        return (f"f={self.focal:.1f} px ± {100 * self.interval:.1f} %{radial} (for {lens}) from {self.num_pairs}"
+                f"{turned} frame pairs")
 
 
 def choose_pairs(tracks: list[dict[int, np.ndarray]], size: int, config: SelfCalibrationConfig
@@ -323,15 +299,16 @@ def choose_radial(matches: list[tuple[np.ndarray, np.ndarray]], cx: float, cy: f
     return float(candidates[k])
 
 
-def pair_costs(grays: list[np.ndarray], config: SelfCalibrationConfig = SelfCalibrationConfig()
+def pair_costs(grays: list[np.ndarray], config: SelfCalibrationConfig = SelfCalibrationConfig(),
+               tracks: list[dict[int, np.ndarray]] | None = None
                ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray, np.ndarray, float]:
     """(the informative frame pairs (a, b), their (n, len(grid)) costs, the focal lengths of the grid, each
     pair's :func:`axis_gap`, the radial coefficient at focal half the larger side) of consecutive grey frames;
-    see the module docstring."""
+    see the module docstring. ``tracks``: their :func:`track_corners`, when already made."""
     h, w = grays[0].shape[:2]
     cx, cy, half = (w - 1) / 2.0, (h - 1) / 2.0, max(w, h) / 2.0
     grid = focal_grid(w, h, config)
-    tracks = track_corners(grays)
+    tracks = track_corners(grays) if tracks is None else tracks
     chosen = [(a, b, *_pair_matches(tracks[a], tracks[b])) for a, b in choose_pairs(tracks, max(w, h), config)]
     candidates = radial_candidates(w, h, config)
     radial = 0.0
@@ -381,11 +358,16 @@ def axis_gap(F: np.ndarray, cx: float, cy: float) -> float:
 def estimate_focal(grays: list[np.ndarray], config: SelfCalibrationConfig = SelfCalibrationConfig(),
                    seed: int = 0) -> FocalEstimate:
     """The focal length of the camera of ``grays`` (consecutive grey frames), principal point at the centre;
-    see the module docstring."""
-    pairs, costs, grid, gaps, radial = pair_costs(grays, config)
+    see the module docstring. When that is weak, the pairs a rotation explains (``rotation_min_flow``)."""
+    tracks = track_corners(grays)
+    pairs, costs, grid, gaps, radial = pair_costs(grays, config, tracks)
     est = focal_from_costs(pairs, costs, grid, gaps, len(grays), config, seed)
     if radial and math.isfinite(est.focal):  # OpenCV's k1 at the estimated focal length
         est = replace(est, k1=radial * (est.focal / (max(grays[0].shape[:2]) / 2.0)) ** 2)
+    if est.weak and config.rotation_min_flow:
+        from .rotation_calibration import estimate_rotation  # it builds on this module's helpers
+        turned = estimate_rotation(grays, config, seed, tracks)
+        return turned if not turned.weak else replace(est, reason=f"{est.reason}; from rotation: {turned.reason}")
     return est
 
 
