@@ -145,9 +145,15 @@ def test_no_import_cycles():
     assert not gone, f"these cycles are gone: remove them from KNOWN_CYCLES: {gone}"
 
 
+def _stage(module: str) -> str:
+    """The stage a module of ``slamkit.stages`` belongs to: itself, or the package it is part of (a stage too large
+    for one module is a package, e.g. ``slamkit.stages.self_calibration``, whose modules import each other)."""
+    return ".".join(module.split(".")[:3])
+
+
 def test_stages_do_not_import_each_other():
     graph = import_graph()
-    bad = {m: sorted(t for t in targets if t.startswith(STAGES + ".") and t != m)
+    bad = {m: sorted(t for t in targets if t.startswith(STAGES + ".") and _stage(t) != _stage(m))
            for m, targets in graph.items() if m.startswith(STAGES + ".")}
     bad = {m: t for m, t in bad.items() if t}
     assert not bad, f"stage modules import other stage modules (move shared helpers to kernels/geometry.py or map.py): {bad}"

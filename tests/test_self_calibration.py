@@ -22,7 +22,7 @@ from slamkit.pipeline import Slam
 from slamkit.sources import open_source
 from slamkit.sources.calibration import read_camera_txt
 from slamkit.sources.render import project
-from slamkit.stages.rotation_calibration import rotation_errors
+from slamkit.stages.self_calibration.rotation import rotation_errors
 from slamkit.stages.self_calibration import (SelfCalibrationConfig, SelfCalibrator, estimate_focal,
                                              essential_cost, focal_grid)
 

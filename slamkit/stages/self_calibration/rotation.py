@@ -2,7 +2,7 @@
 
 A camera that turns about its centre (looking round a room, a hand-held pan) maps its frames onto each other
 by the infinite homography ``H = K R K^-1`` (Hartley 1997, "Self-calibration of stationary cameras"): the
-fundamental matrix of such a pair is undefined, so :mod:`~slamkit.stages.self_calibration`'s epipolar estimate
+fundamental matrix of such a pair is undefined, so :mod:`~slamkit.stages.self_calibration.epipolar`'s estimate
 leaves those pairs out (and calls a window of them weak), but the pair itself fixes the focal length: only at
 the right ``f`` do the corners of both frames, turned into rays, differ by one rotation. Radial distortion
 breaks that model as much as a wrong focal length does (the rendered pan with k1 = 0.25 fitted as a pinhole:
@@ -33,7 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .corner_tracks import _pair_matches, track_corners
-from .self_calibration import (BLOCK_FRAMES, FocalEstimate, SelfCalibrationConfig, _magnification,
+from .epipolar import (BLOCK_FRAMES, FocalEstimate, SelfCalibrationConfig, _magnification,
                                focal_grid, radial_candidates, undistort_half)
 
 ROTATION_MODEL_ERROR = 0.02

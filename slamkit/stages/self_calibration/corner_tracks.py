@@ -1,5 +1,5 @@
 """Corner tracks through the first frames of a sequence, for self-calibration
-(:mod:`~slamkit.stages.self_calibration`, :mod:`~slamkit.stages.rotation_calibration`): pyramidal Lucas-Kanade
+(:mod:`~slamkit.stages.self_calibration`, :mod:`~slamkit.stages.self_calibration.rotation`): pyramidal Lucas-Kanade
 with a forward-backward check, so that any feature type works."""
 
 from __future__ import annotations
