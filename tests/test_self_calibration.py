@@ -294,6 +294,11 @@ def test_a_turning_camera_with_a_distorted_lens_gets_its_focal_within_5_percent(
     assert not est.weak and est.model == "rotation", est.describe()
     assert abs(est.focal / 500 - 1) < 0.05 and abs(math.log(est.focal / 500)) <= est.interval, est.describe()
     assert est.k1 == pytest.approx(STRONG_K1, abs=0.05) and "turned frame pairs" in est.describe()
+    cal = SelfCalibrator()
+    cal.initial, cal.focal = est, est.focal
+    again = SelfCalibrator()
+    again.restore(json.loads(json.dumps(cal.state(), allow_nan=False)))  # a session keeps how it was found
+    assert (again.initial.model, again.initial.k1, again.initial.focal) == ("rotation", est.k1, est.focal)
 
 
 def test_a_walking_camera_keeps_its_epipolar_estimate():

@@ -180,7 +180,8 @@ class SelfCalibrator:
         return {"initial": None if est is None else {
                     "focal": _finite(est.focal), "uncertainty": None if est.weak else _finite(est.uncertainty),
                     "interval": None if est.weak else _finite(est.interval), "num_pairs": est.num_pairs,
-                    "num_frames": est.num_frames, "weak": est.weak, "reason": est.reason},
+                    "num_frames": est.num_frames, "weak": est.weak, "reason": est.reason, "k1": est.k1,
+                    "model": est.model},
                 "focal": self.focal, "k1": self.k1, "unsettled": self.unsettled, "frozen": self.frozen,
                 "history": [[s.num_keyframes, s.focal] for s in self.history]}
 
@@ -188,8 +189,8 @@ class SelfCalibrator:
         init = state.get("initial")
         self.initial = None if init is None else FocalEstimate(
             _number(init["focal"], math.nan), _number(init["uncertainty"], math.inf), int(init["num_pairs"]),
-            int(init["num_frames"]),
-            bool(init["weak"]), str(init["reason"]))
+            int(init["num_frames"]), bool(init["weak"]), str(init["reason"]),
+            k1=float(init.get("k1", 0.0)), model=str(init.get("model", "epipolar")))  # older sessions: neither
         self.focal = None if state.get("focal") is None else float(state["focal"])
         self.k1 = float(state.get("k1", 0.0))  # sessions before the radial coefficient: none
         self.unsettled = str(state.get("unsettled", ""))

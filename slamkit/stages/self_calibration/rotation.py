@@ -33,8 +33,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .corner_tracks import _pair_matches, track_corners
-from .epipolar import (BLOCK_FRAMES, FocalEstimate, SelfCalibrationConfig, _magnification,
-                               focal_grid, radial_candidates, undistort_half)
+from .epipolar import (BLOCK_FRAMES, FocalEstimate, SelfCalibrationConfig, _magnification, focal_grid,
+                       radial_candidates, undistort_half)
 
 ROTATION_MODEL_ERROR = 0.02
 """Relative error of the rotation estimate that no resampling shows: a hand-held camera's centre moves by
@@ -43,7 +43,7 @@ coefficient into ``k1``). On the rendered hand-held pans (``synthetic:handheld-p
 no distortion, k1 = 0.25 and freiburg1's lens; ``benchmarks/bench_self_calibration.py --cases 'syn-pan*'
 --first-frames --seeds 5``) the estimate was off by -0.6 to +2.4 % (long in 11 of 15) with a bootstrap spread of
 0.1-1.0 %: 0.015 would have covered all 15 (± 3.0-3.6 %), 0.02 does with a margin (± 4.0-4.4 %), kept because
-those are one rendered motion and the error is a bias, not noise (benchmarks/HISTORY.md, "Session 26")."""
+those are one rendered motion and the error is a bias, not noise (benchmarks/HISTORY.md, "self-calibration of a turning camera")."""
 
 
 MAX_PAIRS = 24
@@ -77,23 +77,30 @@ def rotation_pairs(tracks: list[dict[int, np.ndarray]], size: int, config: SelfC
     return pairs
 
 
-def rotation_errors(u1: np.ndarray, u2: np.ndarray, grid: np.ndarray, cx: float, cy: float) -> np.ndarray:
-    """(len(grid), N) squared reprojection errors (pixels) of ``u1`` -> ``u2`` ((N, 2) pinhole pixels) by the
-    best rotation (Kabsch on the unit rays) at each focal length of ``grid``."""
-    f = np.asarray(grid, np.float64)[:, None, None]
+def rotated(u1: np.ndarray, u2: np.ndarray, focals: np.ndarray, cx: float, cy: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """``u1`` ((N, 2) pinhole pixels) carried onto ``u2`` by the best rotation (Kabsch on the unit rays) at each
+    focal length of ``focals`` (G,): ((G, N, 2) projected pixels, (G, N) whether in front of the camera)."""
+    f = np.asarray(focals, np.float64).reshape(-1)[:, None, None]
+
     def rays(u):
-        r = np.concatenate([np.broadcast_to((u - (cx, cy))[None], (len(grid), len(u), 2)) / f,
-                            np.ones((len(grid), len(u), 1))], axis=2)
+        r = np.concatenate([np.broadcast_to((u - (cx, cy))[None], (len(f), len(u), 2)) / f,
+                            np.ones((len(f), len(u), 1))], axis=2)
         return r / np.linalg.norm(r, axis=2, keepdims=True)
     r1, r2 = rays(u1), rays(u2)
     U, _, Vt = np.linalg.svd(np.transpose(r2, (0, 2, 1)) @ r1)
-    d = np.sign(np.linalg.det(U @ Vt))
-    U[:, :, 2] *= d[:, None]
+    U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
     p = r1 @ np.transpose(U @ Vt, (0, 2, 1))
-    z = np.where(p[:, :, 2] > 1e-9, p[:, :, 2], 1e-9)
-    proj = f * p[:, :, :2] / z[:, :, None] + (cx, cy)
-    err = ((proj - u2[None]) ** 2).sum(axis=2)
-    return np.where(p[:, :, 2] > 1e-9, err, CAP_PX2)
+    ahead = p[:, :, 2] > 1e-9
+    return f * p[:, :, :2] / np.where(ahead, p[:, :, 2], 1e-9)[:, :, None] + (cx, cy), ahead
+
+
+def rotation_errors(u1: np.ndarray, u2: np.ndarray, grid: np.ndarray, cx: float, cy: float) -> np.ndarray:
+    """(len(grid), N) squared reprojection errors (pixels) of ``u1`` -> ``u2`` ((N, 2) pinhole pixels) by the
+    best rotation at each focal length of ``grid`` (:func:`rotated`); a corner carried behind the camera counts
+    :data:`CAP_PX2`."""
+    proj, ahead = rotated(u1, u2, grid, cx, cy)
+    return np.where(ahead, ((proj - u2[None]) ** 2).sum(axis=2), CAP_PX2)
 
 
 def _pair_cost(x1: np.ndarray, x2: np.ndarray, grid: np.ndarray, cx: float, cy: float, half: float,
@@ -117,14 +124,7 @@ def _lens_residuals(x: np.ndarray, pixels: list[tuple[np.ndarray, np.ndarray]], 
     out = []
     for x1, x2 in pixels:
         u1, u2 = undistort_half(x1, cx, cy, half, k), undistort_half(x2, cx, cy, half, k)
-        r1 = np.column_stack([(u1 - (cx, cy)) / f, np.ones(len(u1))])
-        r2 = np.column_stack([(u2 - (cx, cy)) / f, np.ones(len(u2))])
-        r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
-        r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
-        U, _, Vt = np.linalg.svd(r2.T @ r1)
-        U[:, 2] *= np.sign(np.linalg.det(U @ Vt))
-        p = r1 @ (U @ Vt).T
-        proj = f * p[:, :2] / np.maximum(p[:, 2:], 1e-9) + (cx, cy)
+        proj = rotated(u1, u2, np.array([f]), cx, cy)[0][0]
         out.append(((proj - u2) / np.sqrt(_magnification(u2, cx, cy, half, k))[:, None]).ravel())
     return np.concatenate(out)
 
@@ -215,4 +215,4 @@ def estimate_rotation(grays: list[np.ndarray], config: SelfCalibrationConfig = S
                          model="rotation")
 
 
-__all__ = ["estimate_rotation", "refine_lens", "rotation_errors", "rotation_pairs", "ROTATION_MODEL_ERROR"]
+__all__ = ["estimate_rotation", "refine_lens", "rotated", "rotation_errors", "rotation_pairs", "ROTATION_MODEL_ERROR"]
